@@ -1,0 +1,28 @@
+# Quickstart: `make demo` and `make test`. Both create .venv on first use and reuse it after.
+PYTHON ?= $(shell command -v python3.11 || command -v python3)
+VENV   := .venv
+BIN    := $(VENV)/bin
+# Re-install only when the package's requirements change.
+STAMP  := $(VENV)/.installed
+
+.PHONY: install demo test clean-venv
+
+install: $(STAMP)
+
+$(BIN)/python:
+	$(PYTHON) -m venv $(VENV)
+
+# torch is pinned in the same pip call as everything else: unpinned, pip pulls a multi-GB CUDA build.
+$(STAMP): pyproject.toml | $(BIN)/python
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e ".[dev]" "torch==2.13.0"
+	touch $(STAMP)
+
+demo: install
+	$(BIN)/python -m meshseg.data dataset=synthetic
+
+test: install
+	$(BIN)/python -m pytest
+
+clean-venv:
+	rm -rf $(VENV)

@@ -1,0 +1,1 @@
+"""Meshes, labels, datasets and splits."""

@@ -1,0 +1,68 @@
+"""Dataset roots given as archives: unpacked once into a cache folder, atomically."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import tarfile
+import tempfile
+import zipfile
+from pathlib import Path
+
+from meshseg.data.mesh import MeshDataError
+
+ARCHIVE_SUFFIXES = (".tar.xz", ".tar.gz", ".tgz", ".tar.bz2", ".tar", ".zip")
+
+
+def is_archive(path: Path) -> bool:
+    return path.is_file() and path.name.lower().endswith(ARCHIVE_SUFFIXES)
+
+
+def file_sha256(path: Path, chunk: int = 1 << 20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while block := fh.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def resolve_root(root: str | os.PathLike, cache_dir: str | os.PathLike) -> Path:
+    """A folder for `root`: itself if a folder, else the archive unpacked under `cache_dir`.
+
+    The archive is extracted into a temporary sibling and renamed into place only when complete,
+    so a killed unpack leaves nothing that a later call would trust. The folder name carries the
+    archive's content hash: a changed archive is unpacked afresh.
+    """
+    root = Path(root).expanduser()
+    if root.is_dir():
+        return root
+    if not root.exists():
+        raise MeshDataError(root, "dataset root does not exist (give a folder or an archive with dataset.root=PATH)")
+    if not is_archive(root):
+        raise MeshDataError(root, f"dataset root is neither a folder nor an archive ({', '.join(ARCHIVE_SUFFIXES)})")
+    cache = Path(cache_dir).expanduser()
+    cache.mkdir(parents=True, exist_ok=True)
+    stem = root.name[: -len(next(s for s in ARCHIVE_SUFFIXES if root.name.lower().endswith(s)))]
+    final = cache / f"{stem}-{file_sha256(root)[:16]}"
+    if final.is_dir():
+        return final
+    tmp = Path(tempfile.mkdtemp(dir=cache, prefix=f".{final.name}.partial-"))
+    try:
+        try:
+            if root.name.lower().endswith(".zip"):
+                with zipfile.ZipFile(root) as z:
+                    z.extractall(tmp)
+            else:
+                with tarfile.open(root) as t:
+                    t.extractall(tmp, filter="data")  # refuses absolute paths and '..'
+        except (tarfile.TarError, zipfile.BadZipFile, EOFError, OSError, ValueError) as e:
+            raise MeshDataError(root, f"cannot unpack archive: {e}") from None
+        try:
+            os.rename(tmp, final)
+        except OSError:
+            if not final.is_dir():  # not a concurrent unpack that finished first
+                raise
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return final
