@@ -1,0 +1,56 @@
+"""`python -m meshseg.data` and the Hydra config groups it composes."""
+
+import subprocess
+import sys
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+from conftest import COSEG_ARCHIVE, REPO, require
+from meshseg import CONF_DIR
+from meshseg.data.datasets import COSEG, PSB, Synthetic, build_dataset
+
+
+def run(*overrides, cache):
+    return subprocess.run([sys.executable, "-m", "meshseg.data", f"paths.cache_dir={cache}", *overrides],
+                          cwd=REPO, capture_output=True, text=True, timeout=300)
+
+
+@pytest.mark.parametrize("dataset, cls", [("synthetic", Synthetic), ("psb", PSB), ("coseg", COSEG)])
+@pytest.mark.parametrize("split, protocol", [("loo", "loo"), ("5fold", "kfold"), ("fixed", "fixed")])
+def test_config_groups_compose(dataset, cls, split, protocol, tmp_path):
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = compose("data", overrides=[f"dataset={dataset}", f"split={split}", f"paths.cache_dir={tmp_path}"])
+    assert cfg.dataset._target_ == f"{cls.__module__}.{cls.__name__}"
+    assert cfg.split.protocol == protocol
+    if dataset != "synthetic":
+        assert cfg.dataset.cache_dir == str(tmp_path)
+
+
+def test_build_dataset_surfaces_the_real_error(tmp_path):
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = compose("data", overrides=["dataset=psb", f"dataset.root={tmp_path}/none"])
+    with pytest.raises(ValueError, match="none: dataset root does not exist"):
+        build_dataset(cfg.dataset)
+
+
+def test_summary_synthetic(tmp_path):
+    r = run("dataset.meshes_per_category=2", cache=tmp_path)
+    assert r.returncode == 0, r.stderr
+    ds = Synthetic(meshes_per_category=2)
+    faces = sum(m.n_faces for c in ds.categories for m in ds.meshes(c))
+    lines = r.stdout.splitlines()
+    assert [line.split()[:2] for line in lines[1:4]] == [["table", "2"], ["cup", "2"], ["figure", "2"]]
+    assert lines[-1] == f"total: 6 meshes, {faces} faces"
+
+
+def test_summary_coseg_archive(tmp_path):
+    r = run("dataset=coseg", f"dataset.root={require(COSEG_ARCHIVE)}", cache=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.splitlines()[-1] == "total: 27 meshes, 224754 faces"
+
+
+def test_summary_bad_root_is_one_clear_error(tmp_path):
+    r = run("dataset=psb", f"dataset.root={tmp_path}/missing.tar.xz", cache=tmp_path)
+    assert r.returncode == 1
+    assert r.stderr.strip() == f"error: {tmp_path}/missing.tar.xz: dataset root does not exist (give a folder or an archive with dataset.root=PATH)"

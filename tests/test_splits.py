@@ -1,0 +1,75 @@
+"""Split protocols: LOO, dealt 5-fold, and ShapePFCN's published fixed lists."""
+
+import re
+
+import pytest
+
+from conftest import SPLIT_FILE, require
+from meshseg.data.datasets import Synthetic
+from meshseg.data.mesh import MeshDataError
+from meshseg.data.splits import kfold, leave_one_out, make_folds, read_split_file
+
+IDS = [str(i) for i in range(61, 81)]
+
+
+def test_leave_one_out():
+    folds = leave_one_out(IDS)
+    assert len(folds) == 20
+    for i, f in enumerate(folds):
+        assert f.test == (IDS[i],) and len(f.train) == 19 and IDS[i] not in f.train
+
+
+def test_kfold_deals_sorted_ids():
+    folds = kfold(reversed(IDS), 5)
+    assert [f.test for f in folds][:2] == [("61", "66", "71", "76"), ("62", "67", "72", "77")]
+    tests = [m for f in folds for m in f.test]
+    assert sorted(tests) == sorted(IDS) and len(set(tests)) == 20
+    for f in folds:
+        assert len(f.test) == 4 and set(f.train) == set(IDS) - set(f.test)
+    assert [len(f.test) for f in kfold([str(i) for i in range(12)], 5)] == [3, 3, 2, 2, 2]
+    with pytest.raises(ValueError, match="between 2 and 3 folds"):
+        kfold(["1", "2", "3"], 5)
+
+
+def test_fixed_split_psb_published_ids(psb):
+    split_file = require(SPLIT_FILE)
+    (fold,) = make_folds(psb, "Airplane", "fixed", split_file=split_file)
+    assert fold.train == ("61", "62", "64", "66", "67", "69", "71", "72", "74", "76", "77", "79")
+    assert fold.test == ("63", "65", "68", "70", "73", "75", "78", "80")
+    blocks = read_split_file(str(split_file))
+    for category in psb.categories:
+        (fold,) = make_folds(psb, category, "fixed", split_file=split_file)
+        assert (len(fold.train), len(fold.test)) == (12, 8), category
+        train, test = blocks[f"psb{category}"]
+        assert set(fold.train) == {m.removeprefix("model") for m in train}
+        assert set(fold.test) == {m.removeprefix("model") for m in test}
+
+
+def test_split_file_blocks():
+    blocks = read_split_file(str(require(SPLIT_FILE)))
+    assert len(blocks) == 16 + 19 + 11
+    assert [len(x) for x in blocks["cosegTeleAliens"]] == [12, 188]
+
+
+def test_fixed_split_errors(coseg, tmp_path):
+    split_file = require(SPLIT_FILE)
+    # the fragment lacks most of the published COSEG chairs
+    with pytest.raises(MeshDataError, match=r"block cosegChairs names \d+ meshes the dataset lacks"):
+        make_folds(coseg, "chairs", "fixed", split_file=split_file)
+    with pytest.raises(ValueError, match="no lists for dataset 'synthetic'"):
+        make_folds(Synthetic(meshes_per_category=2), "cup", "fixed", split_file=split_file)
+    bad = tmp_path / "s.txt"
+    bad.write_text("Category psbCup\nTraining split: 3 shapes\nmodel1\nmodel2\nTest split: 1 shapes\n")
+    with pytest.raises(MeshDataError, match=re.escape("block psbCup: training list declares 3 shapes but holds 2")):
+        read_split_file(str(bad))
+    bad.write_text("Category psbCup\nmodel1\n")
+    with pytest.raises(MeshDataError, match=re.escape("line 2: expected 'Training split: N shapes' in block psbCup")):
+        read_split_file(str(bad))
+
+
+def test_make_folds_protocols():
+    ds = Synthetic(categories=["cup"], meshes_per_category=7)
+    assert len(make_folds(ds, "cup", "loo")) == 7
+    assert [len(f.test) for f in make_folds(ds, "cup", "kfold", k=5)] == [2, 2, 1, 1, 1]
+    with pytest.raises(ValueError, match="unknown split protocol 'holdout'"):
+        make_folds(ds, "cup", "holdout")
