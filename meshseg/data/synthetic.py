@@ -24,6 +24,8 @@ from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 from skimage.measure import marching_cubes
 
+__all__ = ["CATEGORIES", "PART_NAMES", "SyntheticMesh", "generate", "sample"]
+
 CATEGORIES: tuple[str, ...] = ("table", "cup", "figure")
 PART_NAMES: dict[str, tuple[str, ...]] = {
     "table": ("top", "leg"),
@@ -132,11 +134,13 @@ def _capsule_part(label, a, b, r) -> _Part:
 
 def _build_table(rng: np.random.Generator) -> tuple[list[_Part], dict]:
     width = rng.uniform(1.0, 1.5)
-    depth = width * rng.uniform(0.55, 0.9)
+    depth = width * rng.uniform(0.6, 0.9)
     thick = rng.uniform(0.1, 0.16)
     height = rng.uniform(0.55, 1.0)
-    leg_r = rng.uniform(0.06, 0.1)  # radius, or half-width for square legs
-    inset = leg_r + rng.uniform(0.02, 0.15)
+    leg_r = rng.uniform(0.06, 0.09)  # radius, or half-width for square legs
+    # Legs sit under the top, with a wide gap between neighbours: nearly touching legs
+    # would fuse at coarse grid spacings and open a spurious tunnel.
+    inset = leg_r + min(rng.uniform(0.02, 0.15), (depth - 4 * leg_r - 0.2) / 2)
     leg_style = ("square", "cylinder", "splayed")[rng.integers(3)]
     splay = float(np.deg2rad(rng.uniform(3.0, 12.0))) if leg_style == "splayed" else 0.0
     params = dict(width=width, depth=depth, thickness=thick, height=height, leg_radius=leg_r,
@@ -154,9 +158,11 @@ def _build_table(rng: np.random.Generator) -> tuple[list[_Part], dict]:
             c = np.array([x, y, attach_z / 2])
             half = np.array([leg_r, leg_r, attach_z / 2])
             if leg_style == "splayed":
-                spread = np.tan(splay) * (attach_z - leg_r)
+                # The capsule's rounded end must stay inside the top, not poke through it.
+                top_z = min(attach_z, height - 0.2 * thick - leg_r)
+                spread = np.tan(splay) * (top_z - leg_r)
                 foot = np.array([x + sx * spread, y + sy * spread, leg_r])
-                parts.append(_capsule_part(1, [x, y, attach_z], foot, leg_r))
+                parts.append(_capsule_part(1, [x, y, top_z], foot, leg_r))
             elif leg_style == "cylinder":
                 parts.append(_part(1, lambda p, c=c: sd_cylinder_z(p, c, leg_r, attach_z / 2), c - half, c + half))
             else:
@@ -165,15 +171,16 @@ def _build_table(rng: np.random.Generator) -> tuple[list[_Part], dict]:
 
 
 def _build_cup(rng: np.random.Generator) -> tuple[list[_Part], dict]:
-    r_bottom = rng.uniform(0.28, 0.4)
-    r_top = r_bottom * rng.uniform(1.0, 1.25)  # from straight mugs to slightly flared tumblers
-    height = rng.uniform(0.8, 1.15)
-    wall = rng.uniform(0.08, 0.11)
-    tube = rng.uniform(0.07, 0.095)
-    # Handle loop: keep its hole open (>= 0.1) and the whole loop between bottom and rim.
+    r_bottom = rng.uniform(0.28, 0.38)
+    r_top = r_bottom * rng.uniform(1.0, 1.2)  # from straight mugs to slightly flared tumblers
+    height = rng.uniform(0.9, 1.2)
+    wall = rng.uniform(0.075, 0.1)
+    tube = rng.uniform(0.07, 0.09)
+    # Handle loop (centred on the wall's mid-surface): keep the hole between it and the
+    # outer wall open, and the whole loop between bottom and rim.
     half_span = (height - 1.5 * wall) / 2 - 0.02
-    hole = min(rng.uniform(0.1, 0.18), half_span - 2 * tube)
-    major = tube + hole
+    hole = min(rng.uniform(0.14, 0.24), half_span - 2 * tube - wall / 2)
+    major = tube + wall / 2 + hole
     stretch = rng.uniform(0.0, 1.0) * (half_span - major - tube)  # taller, D-shaped handles
     reach = major + stretch + tube  # half the handle's height
     handle_z = rng.uniform(wall + reach, height - wall / 2 - reach)
@@ -207,6 +214,7 @@ def _build_figure(rng: np.random.Generator) -> tuple[list[_Part], dict]:
     tw, td, th = rng.uniform(0.22, 0.32), rng.uniform(0.14, 0.2), rng.uniform(0.32, 0.45)
     head_r = rng.uniform(0.14, 0.2)
     arm_r, leg_r = rng.uniform(0.065, 0.09), rng.uniform(0.085, 0.11)
+    hand_r = arm_r * rng.uniform(1.15, 1.4)  # ball hands: a bulge ending each arm
     upper_arm, fore_arm = rng.uniform(0.3, 0.42), rng.uniform(0.26, 0.38)
     thigh, shin = rng.uniform(0.38, 0.52), rng.uniform(0.36, 0.5)
     params = dict(torso=(tw, td, th), head_radius=head_r, arm_radius=arm_r, leg_radius=leg_r,
@@ -225,7 +233,8 @@ def _build_figure(rng: np.random.Generator) -> tuple[list[_Part], dict]:
         shoulder = np.array([side * 0.75 * tw, 0.0, 0.55 * th])
         elbow = shoulder + upper_arm * _limb_dir(side, out, swing)
         hand = elbow + fore_arm * _limb_dir(side, out, swing + bend)  # elbows bend forward
-        parts += [_capsule_part(2, shoulder, elbow, arm_r), _capsule_part(2, elbow, hand, arm_r)]
+        parts += [_capsule_part(2, shoulder, elbow, arm_r), _capsule_part(2, elbow, hand, arm_r),
+                  _part(2, lambda p, c=hand: sd_sphere(p, c, hand_r), hand - hand_r, hand + hand_r)]
         params["pose"][f"arm{side:+.0f}"] = np.rad2deg([out, swing, bend])
     for side in (-1.0, 1.0):
         out, swing, bend = np.deg2rad([rng.uniform(5, 22), rng.uniform(-35, 35), rng.uniform(0, 50)])
@@ -238,6 +247,10 @@ def _build_figure(rng: np.random.Generator) -> tuple[list[_Part], dict]:
 
 
 _BUILDERS = {"table": _build_table, "cup": _build_cup, "figure": _build_figure}
+# Genus of the intended surface (the cup's handle makes one tunnel).  A larger genus means
+# an under-resolved thin wall got perforated.  Figures may legitimately close loops where
+# a limb touches the body, so they are not checked.
+_GENUS = {"table": 0, "cup": 1}
 
 
 # ----------------------------------------------------------------------------------
@@ -360,6 +373,8 @@ def sample(category: str, index: int, seed: int = 0, min_faces: int = 1500, max_
         # one cell are harmless crease artefacts (tiny sealed pockets) and are just dropped.
         resolved = dropped < 0.1 * spacing**2 and len(np.unique(labels)) == n_labels
         closed = _is_closed_oriented(faces)
+        if closed and category in _GENUS:
+            resolved &= len(verts) - len(faces) // 2 == 2 - 2 * _GENUS[category]  # Euler: V - E + F
         in_range = min_faces <= n <= max_faces
         if attempt > 0 and in_range and resolved and closed:
             if _signed_volume(verts, faces) < 0:  # inward normals: flip the winding
