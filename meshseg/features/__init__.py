@@ -1,0 +1,1 @@
+"""Per-face geometric features (paper §3.1)."""

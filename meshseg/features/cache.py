@@ -1,0 +1,93 @@
+"""On-disk cache of feature groups, keyed by (mesh content, group, parameters, code version).
+
+One `.npz` per key, written atomically (temporary file + rename). Zip's CRC and a shape check catch
+a corrupt or truncated file, which is then recomputed and replaced, never trusted.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import inspect
+import json
+import logging
+import os
+import tempfile
+import zipfile
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from meshseg.features import geometry
+from meshseg.features.registry import Group
+
+log = logging.getLogger(__name__)
+
+
+def code_version(group: Group) -> str:
+    """The group's declared version plus a hash of its module's and the shared geometry's source:
+    editing the code that computes a group can never serve values computed before the edit."""
+    return _code_version(group.fn, group.version)
+
+
+@lru_cache(maxsize=None)
+def _code_version(fn, version: str) -> str:
+    h = hashlib.sha256(version.encode())
+    for module in (inspect.getmodule(fn), geometry):
+        h.update(inspect.getsource(module).encode())
+    return h.hexdigest()[:12]
+
+
+def cache_key(mesh_hash: str, group: Group, params: dict) -> str:
+    blob = json.dumps({"mesh": mesh_hash, "group": group.name, "params": params, "code": code_version(group)},
+                      sort_keys=True, default=repr)
+    return hashlib.sha256(blob.encode()).hexdigest()[:32]
+
+
+class FeatureCache:
+    """`get(V, F, mesh_hash, group, params)` returns the group's (F, dim) matrix, from disk when it
+    can. `root=None` disables the cache (always computes)."""
+
+    def __init__(self, root: str | os.PathLike | None):
+        self.root = None if root is None else Path(root).expanduser() / "features"
+
+    def path(self, mesh_hash: str, group: Group, params: dict) -> Path:
+        return self.root / group.name / f"{cache_key(mesh_hash, group, params)}.npz"
+
+    def get(self, V: np.ndarray, F: np.ndarray, mesh_hash: str, group: Group, params: dict) -> np.ndarray:
+        params = group.params(params)
+        if self.root is None:
+            return group(V, F, **params)
+        path = self.path(mesh_hash, group, params)
+        if path.exists():
+            X = self._load(path, (len(F), group.dim))
+            if X is not None:
+                return X
+        X = group(V, F, **params)
+        self._save(path, X)
+        return X
+
+    @staticmethod
+    def _load(path: Path, shape: tuple[int, int]) -> np.ndarray | None:
+        try:
+            with np.load(path) as z:
+                X = z["x"]
+            if X.shape == shape and X.dtype == np.float32:
+                return X
+            problem = f"shape {X.shape} {X.dtype}, expected {shape} float32"
+        except (zipfile.BadZipFile, OSError, ValueError, KeyError, EOFError) as e:
+            problem = f"unreadable ({e})"
+        log.warning("feature cache %s: %s; recomputing", path, problem)
+        return None
+
+    @staticmethod
+    def _save(path: Path, X: np.ndarray) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".tmp")
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                np.savez(fh, x=X)
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise

@@ -1,0 +1,104 @@
+"""Mesh operators shared by the feature families: plain arrays in, plain arrays out.
+
+Faces are the unit of everything downstream, so most operators are per face. Names follow
+libigl's where libigl has the operator.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import dijkstra
+
+from meshseg.data.mesh import face_areas  # noqa: F401  (re-exported: one definition)
+
+
+def face_centers(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """Centroid of each triangle (F, 3)."""
+    return V[F].mean(axis=1)
+
+
+def per_face_normals(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """Unit normal of each triangle (F, 3); zero for a zero-area face."""
+    n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    norm = np.linalg.norm(n, axis=1, keepdims=True)
+    return np.divide(n, norm, out=np.zeros_like(n), where=norm > 0)
+
+
+def edge_face_pairs(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs of faces sharing an edge, and that edge: ((P, 2) face indices, (P, 2) vertex indices).
+
+    On a non-manifold edge shared by k > 2 faces every pair of them is returned.
+    """
+    nf = len(F)
+    edges = np.sort(F[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    owner = np.repeat(np.arange(nf), 3)
+    order = np.lexsort((edges[:, 1], edges[:, 0]))
+    edges, owner = edges[order], owner[order]
+    same = np.all(edges[1:] == edges[:-1], axis=1)
+    # runs of equal edges: pair every member with every later member of its run
+    starts = np.flatnonzero(np.r_[True, ~same])
+    lengths = np.diff(np.r_[starts, len(edges)])
+    pairs, shared = [], []
+    for k in range(2, lengths.max(initial=1) + 1):
+        s = starts[lengths == k]
+        for i in range(k):
+            for j in range(i + 1, k):
+                pairs.append(np.c_[owner[s + i], owner[s + j]])
+                shared.append(edges[s])
+    if not pairs:
+        return np.empty((0, 2), np.int64), np.empty((0, 2), np.int64)
+    return np.concatenate(pairs), np.concatenate(shared)
+
+
+def face_adjacency(F: np.ndarray) -> sp.csr_matrix:
+    """Symmetric F x F 0/1 matrix of faces sharing an edge."""
+    pairs, _ = edge_face_pairs(F)
+    nf = len(F)
+    a = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(nf, nf))
+    a = (a + a.T).tocsr()
+    a.data[:] = 1.0
+    return a
+
+
+def face_dual_graph(V: np.ndarray, F: np.ndarray) -> sp.csr_matrix:
+    """Edge-adjacent faces joined with weight = distance between their centroids (path through the
+    shared edge's midpoint, so the length follows the surface across creases)."""
+    pairs, shared = edge_face_pairs(F)
+    c = face_centers(V, F)
+    mid = V[shared].mean(axis=1)
+    w = np.linalg.norm(c[pairs[:, 0]] - mid, axis=1) + np.linalg.norm(mid - c[pairs[:, 1]], axis=1)
+    w = np.maximum(w, 1e-12)  # csgraph treats explicit zeros as missing edges
+    nf = len(F)
+    g = sp.coo_matrix((w, (pairs[:, 0], pairs[:, 1])), shape=(nf, nf))
+    return (g + g.T).tocsr()
+
+
+def geodesic_distances(graph: sp.csr_matrix, sources: np.ndarray, limit: float = np.inf) -> np.ndarray:
+    """Shortest-path distances (len(sources), F) over a face graph; inf beyond `limit` or across
+    disconnected components."""
+    return dijkstra(graph, directed=False, indices=np.asarray(sources), limit=limit)
+
+
+def vertex_to_face(values: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """Per-vertex quantity -> per-face: the mean over the face's three vertices."""
+    return values[F].mean(axis=1)
+
+
+def farthest_point_sampling(points: np.ndarray, k: int) -> np.ndarray:
+    """Indices of `k` points spread by Euclidean farthest-point sampling.
+
+    Starts from the point farthest from the centroid, so the choice depends only on the point set:
+    it is invariant to rigid motions and to the order of the points (up to exact ties).
+    """
+    n = len(points)
+    if k >= n:
+        return np.arange(n)
+    chosen = np.empty(k, np.int64)
+    chosen[0] = np.argmax(np.einsum("ij,ij->i", points - points.mean(0), points - points.mean(0)))
+    d = np.full(n, np.inf)
+    for i in range(1, k):
+        diff = points - points[chosen[i - 1]]
+        d = np.minimum(d, np.einsum("ij,ij->i", diff, diff))
+        chosen[i] = np.argmax(d)
+    return chosen

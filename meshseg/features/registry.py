@@ -1,0 +1,66 @@
+"""Feature groups by name: each a function (V, F, **params) -> (F, dim) float32.
+
+A family module registers its groups with `@register`; the registry knows each group's width,
+column names, default parameters (the function's keyword defaults) and a version string that is
+part of every cache key — bump it when a group's values change.
+"""
+
+from __future__ import annotations
+
+import inspect
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Group:
+    name: str
+    fn: Callable[..., np.ndarray]
+    dim: int
+    version: str
+    columns: tuple[str, ...]
+    defaults: dict = field(default_factory=dict)
+
+    def params(self, overrides: dict | None = None) -> dict:
+        """Default parameters updated by `overrides`; an unknown name is an error."""
+        overrides = dict(overrides or {})
+        unknown = sorted(set(overrides) - set(self.defaults))
+        if unknown:
+            raise ValueError(f"feature group {self.name!r} has no parameters {unknown}; it has {sorted(self.defaults)}")
+        return {**self.defaults, **overrides}
+
+    def __call__(self, V: np.ndarray, F: np.ndarray, **params) -> np.ndarray:
+        X = np.asarray(self.fn(V, F, **self.params(params)), dtype=np.float32)
+        if X.shape != (len(F), self.dim):
+            raise RuntimeError(f"feature group {self.name!r} returned shape {X.shape}, expected {(len(F), self.dim)}")
+        return X
+
+
+GROUPS: dict[str, Group] = {}
+
+
+def register(name: str, dim: int, version: str = "1", columns: list[str] | None = None):
+    """Decorator: add `fn(V, F, **params)` to GROUPS as `name` with `dim` columns."""
+
+    def wrap(fn):
+        if name in GROUPS:
+            raise ValueError(f"feature group {name!r} registered twice")
+        sig = inspect.signature(fn)
+        defaults = {k: p.default for k, p in list(sig.parameters.items())[2:] if p.default is not inspect.Parameter.empty}
+        cols = tuple(columns) if columns is not None else tuple(f"{name}[{i}]" for i in range(dim))
+        if len(cols) != dim:
+            raise ValueError(f"feature group {name!r}: {len(cols)} column names for {dim} columns")
+        GROUPS[name] = Group(name, fn, dim, version, cols, defaults)
+        return fn
+
+    return wrap
+
+
+def get_group(name: str) -> Group:
+    from meshseg import features  # noqa: F401  (importing the package registers every family)
+
+    if name not in GROUPS:
+        raise ValueError(f"unknown feature group {name!r}; known: {sorted(GROUPS)}")
+    return GROUPS[name]

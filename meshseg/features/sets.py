@@ -1,0 +1,94 @@
+"""Feature sets: an ordered list of groups (or column slices of groups) and their column layout.
+
+`f800` is the paper's vector (593 Kalogerakis + CF0 + CF1..5 + GC + HKS + SIHKS), `f600` the same
+without HKS and SIHKS, and `cf0`, `cf1`, `cf0_1`, `cf1_5`, `cf0_5` the CF ablations of the paper's
+CF figure. Entries are written `group` or `group[a:b]` (columns a..b-1 of that group).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from meshseg.features.cache import FeatureCache
+from meshseg.features.registry import get_group
+
+_ENTRY = re.compile(r"^(\w+)(?:\[(\d*):(\d*)\])?$")
+
+
+@dataclass(frozen=True)
+class Entry:
+    group: str
+    start: int
+    stop: int
+
+    @property
+    def label(self) -> str:
+        g = get_group(self.group)
+        return self.group if (self.start, self.stop) == (0, g.dim) else f"{self.group}[{self.start}:{self.stop}]"
+
+
+def parse_entry(text: str) -> Entry:
+    m = _ENTRY.match(text.strip())
+    if not m:
+        raise ValueError(f"bad feature set entry {text!r}: expected 'group' or 'group[a:b]'")
+    group = get_group(m.group(1))
+    start = int(m.group(2) or 0)
+    stop = int(m.group(3) or group.dim)
+    if not 0 <= start < stop <= group.dim:
+        raise ValueError(f"feature set entry {text!r}: columns {start}:{stop} outside 0:{group.dim}")
+    return Entry(group.name, start, stop)
+
+
+@dataclass(frozen=True)
+class FeatureSet:
+    name: str
+    entries: tuple[Entry, ...]
+    params: dict = field(default_factory=dict)  # {group: {param: value}} overrides
+
+    @classmethod
+    def from_config(cls, cfg) -> "FeatureSet":
+        """From a `conf/features/*.yaml` node: name, groups (entries), params."""
+        params = {k: dict(v) for k, v in dict(cfg.get("params") or {}).items()}
+        entries = tuple(parse_entry(e) for e in cfg.groups)
+        for group in params:
+            get_group(group).params(params[group])  # unknown group or parameter: fail now
+        return cls(cfg.name, entries, params)
+
+    @property
+    def dim(self) -> int:
+        return sum(e.stop - e.start for e in self.entries)
+
+    @property
+    def layout(self) -> dict[str, tuple[int, int]]:
+        """Entry label -> (first column, one past the last column) in this set's matrix."""
+        out, at = {}, 0
+        for e in self.entries:
+            out[e.label] = (at, at + e.stop - e.start)
+            at += e.stop - e.start
+        return out
+
+    @property
+    def columns(self) -> list[str]:
+        return [name for e in self.entries for name in get_group(e.group).columns[e.start : e.stop]]
+
+    def group_params(self, group: str) -> dict:
+        return get_group(group).params(self.params.get(group))
+
+    def compute(self, V: np.ndarray, F: np.ndarray, mesh_hash: str, cache: FeatureCache | None = None,
+                timings: dict | None = None) -> np.ndarray:
+        """The (F, dim) float32 matrix; each group computed once (or read from the cache).
+        `timings`, if given, receives seconds per group."""
+        import time
+
+        cache = cache or FeatureCache(None)
+        blocks: dict[str, np.ndarray] = {}
+        for e in self.entries:
+            if e.group not in blocks:
+                t0 = time.perf_counter()
+                blocks[e.group] = cache.get(V, F, mesh_hash, get_group(e.group), self.params.get(e.group, {}))
+                if timings is not None:
+                    timings[e.group] = time.perf_counter() - t0
+        return np.ascontiguousarray(np.concatenate([blocks[e.group][:, e.start : e.stop] for e in self.entries], axis=1))
