@@ -85,20 +85,31 @@ def vertex_to_face(values: np.ndarray, F: np.ndarray) -> np.ndarray:
     return values[F].mean(axis=1)
 
 
-def farthest_point_sampling(points: np.ndarray, k: int) -> np.ndarray:
+def farthest_point_sampling(points: np.ndarray, k: int, tie: float = 1e-9) -> np.ndarray:
     """Indices of `k` points spread by Euclidean farthest-point sampling.
 
     Starts from the point farthest from the centroid, so the choice depends only on the point set:
-    it is invariant to rigid motions and to the order of the points (up to exact ties).
+    invariant to rigid motions and to the order of the points. Distances equal to within a relative
+    `tie` count as equal and the lowest index wins: mirror-symmetric meshes (common in L-PSB) have
+    exact ties that rounding would otherwise break differently after a rotation. A k-d tree limits
+    each update to the points nearer the new sample than the current sampling radius — the only
+    ones whose distance can drop.
     """
+    from scipy.spatial import cKDTree
+
     n = len(points)
     if k >= n:
         return np.arange(n)
     chosen = np.empty(k, np.int64)
-    chosen[0] = np.argmax(np.einsum("ij,ij->i", points - points.mean(0), points - points.mean(0)))
-    d = np.full(n, np.inf)
+    centred = points - points.mean(axis=0)
+    d = np.einsum("ij,ij->i", centred, centred)
+    chosen[0] = np.argmax(d >= d.max() * (1 - tie))
+    diff = points - points[chosen[0]]
+    d = np.einsum("ij,ij->i", diff, diff)
+    tree = cKDTree(points)
     for i in range(1, k):
-        diff = points - points[chosen[i - 1]]
-        d = np.minimum(d, np.einsum("ij,ij->i", diff, diff))
-        chosen[i] = np.argmax(d)
+        chosen[i] = q = np.argmax(d >= d.max() * (1 - tie))
+        near = np.asarray(tree.query_ball_point(points[q], np.sqrt(d[q]) * (1 + tie)), dtype=np.int64)
+        diff = points[near] - points[q]
+        d[near] = np.minimum(d[near], np.einsum("ij,ij->i", diff, diff))
     return chosen
