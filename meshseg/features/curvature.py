@@ -14,7 +14,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 from threadpoolctl import threadpool_limits
 
-from meshseg.features.geometry import edge_face_pairs, face_areas, face_centers, per_face_normals, vertex_to_face
+from meshseg.features.geometry import (edge_face_pairs, face_areas, face_centers, kalogerakis_normalize,  # noqa: F401
+                                       per_face_normals, vertex_to_face)
 from meshseg.features.registry import register
 
 CURVATURE_VALUES = ("k1", "k2", "k1-k2", "K1", "K2", "K1-K2", "H", "K")
@@ -23,21 +24,6 @@ CURVATURE_COLUMNS = [f"CUR s{s} {v}" for s in range(4) for v in CURVATURE_VALUES
 
 # ---------------------------------------------------------------------------------------------
 # shared operators
-
-
-def kalogerakis_normalize(V: np.ndarray, F: np.ndarray) -> np.ndarray:
-    """Vertices in the 2010 code's units: centred on the area-weighted centroid of the face centres
-    and divided by (0.5 / 0.33) x the 33rd percentile of the face centres' distances to it (a robust
-    "radius" of about 0.5 for a compact shape). Radii of the 593 features are in these units."""
-    c = face_centers(V, F)
-    a = face_areas(V, F)
-    total = a.sum()
-    centre = a @ c / total if total > 0 else c.mean(axis=0)
-    r = np.linalg.norm(c - centre, axis=1)
-    scale = np.partition(r, int(0.33 * len(r)))[int(0.33 * len(r))] * (0.5 / 0.33)
-    if not scale > 0:  # degenerate input (all centres at one point): keep the units finite
-        scale = r.max() if r.max() > 0 else 1.0
-    return (V - centre) / scale
 
 
 def smoothed_face_normals(V: np.ndarray, F: np.ndarray) -> np.ndarray:

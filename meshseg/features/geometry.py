@@ -85,6 +85,27 @@ def vertex_to_face(values: np.ndarray, F: np.ndarray) -> np.ndarray:
     return values[F].mean(axis=1)
 
 
+def kalogerakis_units(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, float]:
+    """(centre, unit) of the 2010 code's mesh normalisation: the area-weighted centroid of the face
+    centres, and (0.5 / 0.33) x the 33rd percentile of the face centres' distances to it (a robust
+    "radius" of about 0.5 for a compact shape). Radii of the 593 features are in these units."""
+    c, a = face_centers(V, F), face_areas(V, F)
+    total = a.sum()
+    centre = a @ c / total if total > 0 else c.mean(axis=0)
+    r = np.linalg.norm(c - centre, axis=1)
+    k = int(0.33 * len(r))
+    unit = np.partition(r, k)[k] * (0.5 / 0.33)
+    if not unit > 0:  # degenerate input (all centres at one point): keep the units finite
+        unit = r.max() if r.max() > 0 else 1.0
+    return centre, float(unit)
+
+
+def kalogerakis_normalize(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """Vertices in the 2010 code's units (see `kalogerakis_units`)."""
+    centre, unit = kalogerakis_units(V, F)
+    return (V - centre) / unit
+
+
 def farthest_point_sampling(points: np.ndarray, k: int, tie: float = 1e-9) -> np.ndarray:
     """Indices of `k` points spread by Euclidean farthest-point sampling.
 

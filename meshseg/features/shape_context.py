@@ -34,7 +34,8 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
 from threadpoolctl import threadpool_limits
 
-from meshseg.features.agd import farthest_point_sampling, sampled_geodesics
+from meshseg.features.agd import sampled_geodesics
+from meshseg.features.geometry import farthest_point_sampling
 from meshseg.features.registry import register
 
 BINNINGS = ((5, 4), (5, 6), (5, 8), (10, 4), (10, 6), (10, 8))

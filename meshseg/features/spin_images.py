@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from meshseg.features.geometry import face_areas, face_centers
+from meshseg.features.geometry import face_areas, face_centers, farthest_point_sampling, kalogerakis_units
 from meshseg.features.registry import register
 from meshseg.features.shape_diameter import face_normals, vertex_normals
 
@@ -26,17 +26,6 @@ _TIE = 1e-9
 #: (faces × samples) pairs handled at once: small enough to stay in cache (about 60 bytes a pair);
 #: 8x more is 4x slower
 _PAIRS_PER_BLOCK = 1 << 16
-
-
-def kalogerakis_unit(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, float]:
-    """(centre, unit) of Kalogerakis' mesh normalisation: the area-weighted centroid of the face
-    centres, and the distance of face centres from it at the 33rd percentile times 0.5/0.33
-    (so about half the faces lie within 1 unit; a sphere has radius ≈ 0.66 units)."""
-    c, a = face_centers(V, F), face_areas(V, F)
-    centre = (c * a[:, None]).sum(axis=0) / a.sum() if a.sum() > 0 else c.mean(axis=0)
-    d = np.sort(np.linalg.norm(c - centre, axis=1))
-    unit = d[int(np.floor(0.33 * len(d)))] * (0.5 / 0.33)
-    return centre, float(unit) if unit > 0 else 1.0
 
 
 def vertex_area_weights(V: np.ndarray, F: np.ndarray) -> np.ndarray:
@@ -59,31 +48,12 @@ def spin_samples(V: np.ndarray, vn: np.ndarray, w: np.ndarray, n_samples: int, b
     if len(keep) <= n_samples:
         return V[keep], vn[keep], w[keep]
     X = np.concatenate([V[keep], bin_size * vn[keep]], axis=1)
-    seeds = farthest_point_sampling_stable(X, n_samples)
+    seeds = farthest_point_sampling(X, n_samples, tie=_TIE)
     # nearest seed; a vertex equidistant (to rounding) from two seeds goes to the earlier one
     d, near = cKDTree(X[seeds]).query(X, k=2)
     tie = d[:, 1] - d[:, 0] <= _TIE * d[:, 1]
     cell = np.where(tie, near.min(axis=1), near[:, 0])
     return V[keep][seeds], vn[keep][seeds], np.bincount(cell, w[keep], minlength=n_samples)
-
-
-def farthest_point_sampling_stable(points: np.ndarray, k: int) -> np.ndarray:
-    """`geometry.farthest_point_sampling` with ties broken by the lowest index: distances equal
-    to within a relative 1e-9 count as equal. Mirror-symmetric meshes (common in L-PSB) have
-    exact ties, and rounding would otherwise break them differently after a rigid motion."""
-    n = len(points)
-    if k >= n:
-        return np.arange(n)
-    chosen = np.empty(k, np.int64)
-    diff = points - points.mean(axis=0)
-    d = np.einsum("ij,ij->i", diff, diff)
-    chosen[0] = np.argmax(d >= d.max() * (1 - _TIE))
-    d = np.full(n, np.inf)
-    for i in range(1, k):
-        diff = points - points[chosen[i - 1]]
-        np.minimum(d, np.einsum("ij,ij->i", diff, diff), out=d)
-        chosen[i] = np.argmax(d >= d.max() * (1 - _TIE))
-    return chosen
 
 
 def spin_histograms(C: np.ndarray, N: np.ndarray, P: np.ndarray, PN: np.ndarray, W: np.ndarray,
@@ -165,7 +135,7 @@ def spin_images(V: np.ndarray, F: np.ndarray, *, n_samples: int = 1024, support:
                 normals: str = "vertex") -> np.ndarray:
     """Spin images, 100 columns = 10 β bins × 10 α bins (column "SI beta{i} alpha{j}").
 
-    Units: the mesh is centred and scaled by `kalogerakis_unit`, and the image covers
+    Units: the mesh is centred and scaled by `geometry.kalogerakis_units`, and the image covers
     β ∈ [−support, support] (10 bins of support/5, bin 0 at +support: points above the face
     first) and α ∈ [0, support] (10 bins of support/10). Face centre p and normal n as in
     `shape_diameter` (`normals`="vertex": the sum of the vertex normals, as the original). The
@@ -178,7 +148,7 @@ def spin_images(V: np.ndarray, F: np.ndarray, *, n_samples: int = 1024, support:
     """
     V = np.asarray(V, dtype=np.float64)
     F = np.asarray(F, dtype=np.int64)
-    centre, unit = kalogerakis_unit(V, F)
+    centre, unit = kalogerakis_units(V, F)
     V = (V - centre) / unit
     vn = vertex_normals(V, F)
     n = face_normals(V, F, normals, vn)
