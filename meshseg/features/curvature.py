@@ -1,10 +1,10 @@
 """Curvature features: Kalogerakis et al. 2010's multi-scale quadric-fit curvatures (`curvature`,
 64 columns) and pointwise Gaussian curvature (`gc`, 1 column).
 
-Also home of the operators that reproduce the 2010 code's conventions, shared with `pca` (and
-`agd`): `kalogerakis_normalize` (its per-mesh units), `smoothed_face_normals` (its face
-normals are averaged vertex normals, not the triangles' own), `dual_edges` (its face graph) and
-`geodesic_balls` (its geodesic face neighbourhoods, found in batches without a Dijkstra per face).
+Also home of the 2010 code's face neighbourhoods, shared with `pca`: `dual_edges` (its face
+graph) and `geodesic_balls` (its geodesic face neighbourhoods, found in batches without a Dijkstra
+per face). Its units and face normals are `geometry.kalogerakis_normalize` and
+`geometry.smoothed_face_normals`.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from scipy.spatial import cKDTree
 from threadpoolctl import threadpool_limits
 
 from meshseg.features.geometry import (edge_face_pairs, face_areas, face_centers, kalogerakis_normalize,  # noqa: F401
-                                       per_face_normals, vertex_to_face)
+                                       per_face_normals, smoothed_face_normals, vertex_to_face)
 from meshseg.features.registry import register
 
 CURVATURE_VALUES = ("k1", "k2", "k1-k2", "K1", "K2", "K1-K2", "H", "K")
@@ -24,27 +24,6 @@ CURVATURE_COLUMNS = [f"CUR s{s} {v}" for s in range(4) for v in CURVATURE_VALUES
 
 # ---------------------------------------------------------------------------------------------
 # shared operators
-
-
-def smoothed_face_normals(V: np.ndarray, F: np.ndarray) -> np.ndarray:
-    """The face normals the 2010 code uses (trimesh2's `need_normals` as modified there): unit
-    vertex normals by Max's weights (each adjacent face's cross product divided by the squared
-    lengths of the two edges at the vertex), and per face the unit sum of its three vertex
-    normals; a smoothed normal, not the triangle's own. Zero where undefined."""
-    p0, p1, p2 = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
-    a, b, c = p0 - p1, p1 - p2, p2 - p0
-    cross = np.cross(a, b)
-    la, lb, lc = (np.einsum("ij,ij->i", e, e) for e in (a, b, c))
-    nv = np.zeros((len(V), 3))
-    for corner, w in ((0, la * lc), (1, lb * la), (2, lc * lb)):
-        contrib = cross * np.divide(1.0, w, out=np.zeros_like(w), where=w > 0)[:, None]
-        for axis in range(3):
-            nv[:, axis] += np.bincount(F[:, corner], weights=contrib[:, axis], minlength=len(V))
-    norm = np.linalg.norm(nv, axis=1, keepdims=True)
-    nv = np.divide(nv, norm, out=np.zeros_like(nv), where=norm > 0)
-    nf = nv[F].sum(axis=1)
-    norm = np.linalg.norm(nf, axis=1, keepdims=True)
-    return np.divide(nf, norm, out=np.zeros_like(nf), where=norm > 0)
 
 
 def dual_edges(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

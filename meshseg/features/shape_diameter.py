@@ -25,7 +25,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from meshseg.features.geometry import face_areas, face_centers, face_adjacency, per_face_normals
+from meshseg.features.geometry import (face_adjacency, face_areas, face_centers, per_face_normals,  # noqa: F401
+                                       smoothed_face_normals, vertex_normals)
 from meshseg.features.registry import register
 
 CONES = (15, 30, 45)
@@ -40,37 +41,10 @@ _OFFSET = 1e-5
 # --- normals and frames -----------------------------------------------------------------------
 
 
-def vertex_normals(V: np.ndarray, F: np.ndarray) -> np.ndarray:
-    """Unit vertex normals (V, 3): face normals weighted at each corner by 1/(|a|²|b|²) of the two
-    edges meeting there (Max 1999; TriMesh2). Zero for a vertex no face with area touches."""
-    p0, p1, p2 = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
-    a, b, c = p0 - p2, p1 - p0, p2 - p1
-    la, lb, lc = (np.einsum("ij,ij->i", e, e) for e in (a, b, c))
-    fn = np.cross(a, b)
-    N = np.zeros_like(V, dtype=np.float64)
-    for k, l2 in ((0, la * lb), (1, lb * lc), (2, lc * la)):
-        # a zero-length edge gives no direction at that corner: weight 0 instead of inf
-        w = np.divide(1.0, l2, out=np.zeros_like(l2), where=l2 > 0)
-        for d in range(3):
-            N[:, d] += np.bincount(F[:, k], fn[:, d] * w, minlength=len(V))
-    return _unit(N)
-
-
-def smooth_face_normals(V: np.ndarray, F: np.ndarray, vn: np.ndarray | None = None) -> np.ndarray:
-    """Kalogerakis' face normal: the normalised sum of the face's three vertex normals; the
-    geometric normal where that sum vanishes; zero where both do (a degenerate face)."""
-    vn = vertex_normals(V, F) if vn is None else vn
-    n = _unit(vn[F].sum(axis=1))
-    bad = ~n.any(axis=1)
-    if bad.any():
-        n[bad] = per_face_normals(V, F[bad])
-    return n
-
-
 def face_normals(V: np.ndarray, F: np.ndarray, kind: str, vn: np.ndarray | None = None) -> np.ndarray:
-    """`kind` "vertex": smooth_face_normals (the original); "face": the triangles' own normals."""
+    """`kind` "vertex": `geometry.smoothed_face_normals` (the original); "face": the triangles' own normals."""
     if kind == "vertex":
-        return smooth_face_normals(V, F, vn)
+        return smoothed_face_normals(V, F, vn)
     if kind == "face":
         return per_face_normals(V, F)
     raise ValueError(f"unknown normals {kind!r}: expected 'vertex' or 'face'")

@@ -11,9 +11,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from meshseg.features.geometry import face_areas, face_centers, farthest_point_sampling, kalogerakis_units
+from meshseg.features.geometry import face_areas, face_centers, farthest_point_sampling, kalogerakis_units, vertex_normals
 from meshseg.features.registry import register
-from meshseg.features.shape_diameter import face_normals, vertex_normals
+from meshseg.features.shape_diameter import face_normals
 
 BINS = 10
 #: Gaussian soft assignment of the original: weight exp(−d²/0.2) to a bin whose centre is d bin
