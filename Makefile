@@ -18,8 +18,11 @@ $(STAMP): pyproject.toml | $(BIN)/python
 	$(BIN)/python -m pip install --quiet -e ".[dev]" "torch==2.13.0"
 	touch $(STAMP)
 
+# The user's command on the embedded synthetic data: every category x fold, one MLflow run each.
 demo: install
-	$(BIN)/python -m meshseg.data dataset=synthetic
+	$(BIN)/python -m meshseg.run model=cnn1d branches=3 split=5fold -m
+	@echo "Runs are in the MLflow store mlruns/mlflow.db. Browse them with:"
+	@echo "  $(BIN)/mlflow ui --backend-store-uri sqlite:///mlruns/mlflow.db   # then open http://127.0.0.1:5000"
 
 test: install
 	$(BIN)/python -m pytest

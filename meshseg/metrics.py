@@ -35,3 +35,11 @@ def mean_by(values: Iterable[float], keys: Iterable[Hashable]) -> dict[Hashable,
     for v, k in zip(values, keys, strict=True):
         groups[k].append(float(v))
     return {k: float(np.mean(v)) for k, v in groups.items()}
+
+
+def mesh_scores(meshes, raw_labels, labels) -> list[dict]:
+    """One row per test mesh: id, faces, area, accuracy before (`acc_raw`) and after (`acc`) refinement."""
+    return [{"mesh": m.id, "faces": m.n_faces, "area": float(m.face_areas.sum()),
+             "acc_raw": area_weighted_accuracy(raw, m.labels, m.face_areas),
+             "acc": area_weighted_accuracy(lab, m.labels, m.face_areas)}
+            for m, raw, lab in zip(meshes, raw_labels, labels, strict=True)]

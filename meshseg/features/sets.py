@@ -8,10 +8,13 @@ CF figure. Entries are written `group` or `group[a:b]` (columns a..b-1 of that g
 from __future__ import annotations
 
 import re
+import sys
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from meshseg.data.datasets import MeshDataset
 from meshseg.features.cache import FeatureCache
 from meshseg.features.registry import get_group
 
@@ -77,12 +80,15 @@ class FeatureSet:
     def group_params(self, group: str) -> dict:
         return get_group(group).params(self.params.get(group))
 
+    def cached(self, mesh_hash: str, cache: FeatureCache) -> bool:
+        """Whether every group of this set is already in `cache` for that mesh."""
+        return cache.root is not None and all(
+            cache.path(mesh_hash, get_group(g), self.group_params(g)).exists() for g in {e.group for e in self.entries})
+
     def compute(self, V: np.ndarray, F: np.ndarray, mesh_hash: str, cache: FeatureCache | None = None,
                 timings: dict | None = None) -> np.ndarray:
         """The (F, dim) float32 matrix; each group computed once (or read from the cache).
         `timings`, if given, receives seconds per group."""
-        import time
-
         cache = cache or FeatureCache(None)
         blocks: dict[str, np.ndarray] = {}
         for e in self.entries:
@@ -92,3 +98,35 @@ class FeatureSet:
                 if timings is not None:
                     timings[e.group] = time.perf_counter() - t0
         return np.ascontiguousarray(np.concatenate([blocks[e.group][:, e.start : e.stop] for e in self.entries], axis=1))
+
+
+def _one(dataset: MeshDataset, category: str, mesh_id: str, fs: FeatureSet, cache_root: str | None):
+    t0 = time.perf_counter()
+    mesh = dataset.load(category, mesh_id)
+    X = fs.compute(mesh.vertices, mesh.faces, mesh.content_hash, FeatureCache(cache_root))
+    if not np.isfinite(X).all():
+        bad = sorted({fs.columns[j] for j in np.flatnonzero(~np.isfinite(X).all(axis=0))})
+        raise FloatingPointError(f"{mesh.source}: non-finite features in columns {bad[:5]}")
+    return category, mesh_id, mesh.n_faces, time.perf_counter() - t0
+
+
+def compute_dataset(dataset: MeshDataset, fs: FeatureSet, cache_root: str | None, jobs: list[tuple[str, str]],
+                    workers: int = 2, out=None) -> tuple[int, int, float]:
+    """Features of the meshes `jobs` ((category, mesh id) pairs), `workers` meshes at a time, into the
+    cache; one line per mesh, then the total (to `out`, default stdout)."""
+    from joblib import Parallel, delayed
+    from tqdm import tqdm
+
+    out = out or sys.stdout
+    t0 = time.perf_counter()
+    n_faces = 0
+    results = Parallel(n_jobs=workers, return_as="generator_unordered")(
+        delayed(_one)(dataset, c, m, fs, cache_root) for c, m in jobs)
+    with tqdm(total=len(jobs), unit="mesh", file=sys.stderr, disable=None) as bar:
+        for category, mesh_id, faces, seconds in results:
+            n_faces += faces
+            bar.update()
+            bar.write(f"{category}/{mesh_id}: {faces} faces in {seconds:.1f} s ({faces / seconds:.0f} faces/s)", file=out)
+    elapsed = time.perf_counter() - t0
+    print(f"features: {len(jobs)} meshes, {n_faces} faces, {n_faces / elapsed:.0f} faces/s", file=out)
+    return len(jobs), n_faces, elapsed

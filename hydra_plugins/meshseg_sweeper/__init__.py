@@ -1,0 +1,1 @@
+"""Hydra plugin: meshseg's sweeper (hydra/sweeper=meshseg)."""

@@ -1,0 +1,155 @@
+"""`python -m meshseg.run`: train and evaluate one method on one fold of one category, logged as one
+MLflow run (DESIGN "Tracking contract").
+
+    python -m meshseg.run model=cnn1d branches=3 split=5fold -m           # every category x fold
+    python -m meshseg.run dataset=psb category=Airplane fold=2 budget=cpu  # one run
+
+Thin by design: compose, validate, wire data -> features -> training -> refine -> metrics ->
+tracking. With -m, meshseg's sweeper (hydra_plugins/meshseg_sweeper) expands the categories and
+folds that the command line does not fix.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+
+import hydra
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+
+from meshseg import CONF_DIR
+from meshseg.data.datasets import MeshDataset, build_dataset
+from meshseg.data.mesh import MeshDataError
+from meshseg.data.splits import Fold, make_folds
+
+log = logging.getLogger("meshseg.run")
+
+BRANCHES = (1, 2, 3, 4)
+RING_ADJACENCY = ("edge", "vertex")
+
+
+def split_name(split) -> str:
+    """The split's tag: loo, 5fold, fixed."""
+    return f"{split.k}fold" if split.protocol == "kfold" else split.protocol
+
+
+def folds_of(cfg: DictConfig, dataset: MeshDataset, category: str) -> list[Fold]:
+    return make_folds(dataset, category, cfg.split.protocol, k=cfg.split.get("k", 5), split_file=cfg.split.get("file"))
+
+
+def check_knobs(cfg: DictConfig) -> None:
+    """Values no config group can check for itself; each message lists what is allowed."""
+    if cfg.branches not in BRANCHES:
+        raise ValueError(f"branches={cfg.branches} is not allowed: choose one of {list(BRANCHES)}")
+    if cfg.ring_adjacency not in RING_ADJACENCY:
+        raise ValueError(f"ring_adjacency={cfg.ring_adjacency} is not allowed: choose one of {list(RING_ADJACENCY)}")
+    b = cfg.budget
+    if not (int(b.epochs) >= 1 and int(b.batch_size) >= 1 and (b.faces_per_mesh is None or int(b.faces_per_mesh) >= 1)):
+        raise ValueError(f"budget {b.name}: epochs and batch_size must be >= 1 and faces_per_mesh >= 1 or null")
+
+
+def resolve_cell(cfg: DictConfig, dataset: MeshDataset) -> tuple[str, Fold]:
+    """The run's category (default: the dataset's first) and fold (default: 0), checked."""
+    check_knobs(cfg)
+    category = dataset.check_category(cfg.category) if cfg.category is not None else dataset.categories[0]
+    folds = folds_of(cfg, dataset, category)
+    index = 0 if cfg.fold is None else cfg.fold
+    if not (isinstance(index, int) and 0 <= index < len(folds)):
+        raise ValueError(f"fold={cfg.fold} is out of range: split {split_name(cfg.split)} of {category} has folds 0..{len(folds) - 1}")
+    return category, folds[index]
+
+
+def sweep_cells(cfg: DictConfig, category_given: bool, fold_given: bool) -> list[tuple[str | None, int | None]]:
+    """The (category, fold) pairs a -m sweep adds to one combination of its overrides: every category
+    unless the command line fixes it, every fold of each unless fixed (None where fixed). Fails at
+    once on a bad value, before any job starts; also creates the tracking store, so that parallel
+    workers never race to initialise it."""
+    from meshseg.tracking import Tracker
+
+    dataset = build_dataset(cfg.dataset)
+    check_knobs(cfg)
+    categories = [dataset.check_category(cfg.category)] if category_given else dataset.categories
+    cells: list[tuple[str | None, int | None]] = []
+    for category in categories:
+        if fold_given:
+            resolve_cell(OmegaConf.merge(cfg, {"category": category}), dataset)
+            cells.append((None if category_given else category, None))
+        else:
+            n = len(folds_of(cfg, dataset, category))
+            cells.extend((None if category_given else category, f) for f in range(n))
+    Tracker(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_dir)
+    return cells
+
+
+def run(cfg: DictConfig) -> float:
+    """One fold: skip if its config already has a FINISHED run, else train, evaluate and log it.
+    Returns the fold's test accuracy (area-weighted, after refinement)."""
+    import torch
+
+    from meshseg.features.sets import FeatureSet
+    from meshseg.metrics import mesh_scores
+    from meshseg.refine import refine_labels
+    from meshseg.tracking import Tracker, config_hash, flatten, git_sha
+    from meshseg.training.data import FeatureSource
+    from meshseg.training.fit import fit_predict
+
+    if cfg.trainer.threads:
+        torch.set_num_threads(int(cfg.trainer.threads))
+    dataset = build_dataset(cfg.dataset)
+    category, fold = resolve_cell(cfg, dataset)
+    features = FeatureSet.from_config(cfg.features)
+    config = OmegaConf.to_container(cfg, resolve=True)
+    config.update(category=category, fold=fold.index)
+    chash = config_hash(config, cfg.tracking.hash_exclude, {"data_hash": dataset.data_hash})
+    name = f"{cfg.model.name} {cfg.branches}B {dataset.name}/{category} {split_name(cfg.split)} fold {fold.index}"
+
+    tracker = Tracker(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_dir)
+    done = tracker.finished(chash) if cfg.tracking.skip_finished else None
+    if done is not None:
+        acc = done.data.metrics.get("test_acc", float("nan"))
+        log.info("skip: %s — config %s already has FINISHED run %s (test_acc %.4f)", name, chash, done.info.run_id, acc)
+        return acc
+
+    tags = {"dataset": dataset.name, "category": category, "model": cfg.model.name, "branches": cfg.branches,
+            "features": features.name, "split": split_name(cfg.split), "fold": fold.index, "refine": cfg.refine.name,
+            "budget": cfg.budget.name, "config_hash": chash, "git_sha": git_sha(), "data_hash": dataset.data_hash,
+            "seed": cfg.seed, "accelerator": cfg.trainer.accelerator}
+    log.info("run: %s (config %s, %d train / %d test meshes)", name, chash, len(fold.train), len(fold.test))
+    with tracker.run(name, tags, flatten(config)) as run_id:
+        source = FeatureSource(dataset, category, features, cfg.paths.cache_dir, cfg.branches, cfg.ring_adjacency)
+        preds = fit_predict(source, fold, cfg.model, cfg.budget, cfg.trainer, cfg.seed, cfg.workers,
+                            logger=tracker.lightning_logger(run_id))
+        raw = [p.argmax(axis=1) for p in preds.probabilities]
+        labels = [refine_labels(m, p, cfg.refine) for m, p in zip(preds.meshes, preds.probabilities)]
+        rows = mesh_scores(preds.meshes, raw, labels)
+        metrics = {"test_acc": np.mean([r["acc"] for r in rows]), "test_acc_raw": np.mean([r["acc_raw"] for r in rows]),
+                   **{f"time_{k}_s": v for k, v in preds.timings.items()}, **{f"n_{k}": v for k, v in preds.counts.items()},
+                   "train_samples_per_s": preds.counts["train_samples"] * preds.counts["epochs"] / preds.timings["train"]}
+        tracker.log_metrics(run_id, metrics)
+        predictions = {}
+        for m, p, r, lab in zip(preds.meshes, preds.probabilities, raw, labels):
+            predictions.update({f"labels_{m.id}": lab.astype(np.int16), f"labels_raw_{m.id}": r.astype(np.int16),
+                                f"probs_{m.id}": p.astype(np.float16)})
+        tracker.log_fold(run_id, OmegaConf.to_yaml(config), rows, predictions)
+    log.info("done: %s test_acc %.4f (raw %.4f), train %.1f s, run %s", name, metrics["test_acc"],
+             metrics["test_acc_raw"], preds.timings["train"], run_id)
+    return float(metrics["test_acc"])
+
+
+@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="run")
+def main(cfg: DictConfig) -> float:
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    logging.getLogger("pytorch_lightning.utilities.rank_zero").setLevel(logging.WARNING)  # no device banners
+    try:
+        return run(cfg)
+    except (MeshDataError, ValueError, FloatingPointError) as e:
+        if HydraConfig.get().mode == RunMode.MULTIRUN:
+            raise  # the launcher records it and goes on with the other jobs
+        sys.exit(f"error: {e}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,189 @@
+"""MLflow under the tracking contract (DESIGN "Tracking contract"): one run per (method config,
+dataset, category, split, fold), tagged with every knob the report needs; params are the flattened
+resolved config; artifacts are the config, a per-mesh table and the per-face predictions.
+
+A run's identity is `config_hash`: a config whose hash already has a FINISHED run is not run again,
+so an interrupted sweep, rerun, does only what is missing. A run that raises ends FAILED with its
+error text in the `error` tag; one interrupted from the keyboard ends KILLED; one killed outright
+stays RUNNING and is marked KILLED when a later run of the same hash finishes.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import io
+import json
+import logging
+import subprocess
+import tempfile
+import time
+import traceback
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+#: tags every run carries (the report selects runs by these)
+CONTRACT_TAGS = ("dataset", "category", "model", "branches", "features", "split", "fold", "refine", "budget",
+                 "config_hash", "git_sha", "data_hash")
+
+
+def flatten(node, prefix: str = "") -> dict[str, object]:
+    """{"a.b.c": leaf} for nested dicts and lists (list items keyed by index)."""
+    items = node.items() if isinstance(node, dict) else enumerate(node) if isinstance(node, list) else None
+    if items is None:
+        return {prefix: node}
+    out: dict[str, object] = {}
+    for k, v in items:
+        out.update(flatten(v, f"{prefix}.{k}" if prefix else str(k)))
+    return out
+
+
+def config_hash(config: dict, exclude=(), extra: dict | None = None) -> str:
+    """sha256 (16 hex) of the config's leaves except the `exclude` keys (a key excludes its subtree),
+    plus `extra` (e.g. the data hash)."""
+    prefixes = tuple(exclude)
+    leaves = {k: v for k, v in flatten(config).items()
+              if not any(k == p or k.startswith(p + ".") for p in prefixes)}
+    blob = json.dumps({"config": leaves, "extra": extra or {}}, sort_keys=True, default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def git_sha() -> str:
+    """The package's git commit, '+dirty' when tracked files differ from it; 'unknown' outside git."""
+    root = Path(__file__).resolve().parents[1]
+    try:
+        sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
+                               capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+    return sha + ("+dirty" if dirty else "")
+
+
+def store_uri(uri: str) -> str:
+    """A relative sqlite path made absolute (so workers and `mlflow ui` agree), its folder created."""
+    prefix = "sqlite:///"
+    if uri.startswith(prefix):
+        path = Path(uri[len(prefix):]).expanduser().absolute()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        return prefix + str(path)
+    return uri
+
+
+def _retry(fn, what: str, attempts: int = 8):
+    """sqlite under several writer processes can report 'database is locked': back off and retry."""
+    from mlflow.exceptions import MlflowException
+
+    for i in range(attempts):
+        try:
+            return fn()
+        except MlflowException as e:
+            if "locked" not in str(e) or i == attempts - 1:
+                raise
+            log.warning("%s: store busy, retrying", what)
+            time.sleep(0.2 * 2**i)
+
+
+class Tracker:
+    """One MLflow experiment in one store."""
+
+    def __init__(self, uri: str, experiment: str, artifact_dir: str | None = None):
+        from mlflow import MlflowClient
+
+        self.uri = store_uri(uri)
+        self.client = MlflowClient(tracking_uri=self.uri)
+        self.experiment_id = self._experiment(experiment, artifact_dir)
+
+    def _experiment(self, name: str, artifact_dir: str | None) -> str:
+        from mlflow.exceptions import MlflowException
+
+        exp = _retry(lambda: self.client.get_experiment_by_name(name), "get experiment")
+        if exp is not None:
+            return exp.experiment_id
+        location = Path(artifact_dir).expanduser().absolute().as_uri() if artifact_dir and self.uri.startswith("sqlite") else None
+        try:
+            return self.client.create_experiment(name, artifact_location=location)
+        except MlflowException:  # another worker created it first
+            return self.client.get_experiment_by_name(name).experiment_id
+
+    def runs(self, filter_string: str = "") -> list:
+        """All runs of the experiment matching an MLflow filter string."""
+        out, token = [], None
+        while True:
+            page = self.client.search_runs([self.experiment_id], filter_string, max_results=1000, page_token=token)
+            out.extend(page)
+            token = page.token
+            if not token:
+                return out
+
+    def finished(self, config_hash: str):
+        """The FINISHED run with this config hash, or None."""
+        runs = self.runs(f"tags.config_hash = '{config_hash}' and attributes.status = 'FINISHED'")
+        return runs[0] if runs else None
+
+    @contextmanager
+    def run(self, name: str, tags: dict, params: dict) -> Iterator[str]:
+        """Create a run, yield its id, and end it FINISHED, FAILED (error text tagged) or KILLED."""
+        from mlflow.entities import Param
+        from mlflow.utils.mlflow_tags import MLFLOW_RUN_NAME
+
+        run = _retry(lambda: self.client.create_run(self.experiment_id, run_name=name,
+                                                    tags={**{k: str(v) for k, v in tags.items()}, MLFLOW_RUN_NAME: name}), "create run")
+        run_id = run.info.run_id
+        try:
+            items = [Param(k, str(v)[:6000]) for k, v in params.items()]
+            for i in range(0, len(items), 100):
+                _retry(lambda: self.client.log_batch(run_id, params=items[i : i + 100]), "log params")
+            yield run_id
+        except KeyboardInterrupt:
+            self.client.set_terminated(run_id, "KILLED")
+            raise
+        except BaseException as e:
+            text = "".join(traceback.format_exception_only(type(e), e)).strip()
+            self.client.set_tag(run_id, "error", text[:5000])
+            self.client.log_text(run_id, traceback.format_exc(), "error.txt")
+            self.client.set_terminated(run_id, "FAILED")
+            raise
+        else:
+            self.client.set_terminated(run_id, "FINISHED")
+            for stale in self.runs(f"tags.config_hash = '{tags['config_hash']}' and attributes.status = 'RUNNING'"):
+                if stale.info.run_id != run_id:  # a run of the same config killed outright earlier
+                    self.client.set_tag(stale.info.run_id, "superseded_by", run_id)
+                    self.client.set_terminated(stale.info.run_id, "KILLED")
+
+    def log_metrics(self, run_id: str, metrics: dict[str, float]) -> None:
+        from mlflow.entities import Metric
+
+        now = int(time.time() * 1000)
+        items = [Metric(k, float(v), now, 0) for k, v in metrics.items()]
+        _retry(lambda: self.client.log_batch(run_id, metrics=items), "log metrics")
+
+    def log_fold(self, run_id: str, config_yaml: str, rows: list[dict], predictions: dict[str, np.ndarray]) -> None:
+        """Artifacts: config.yaml, per_mesh.csv, predictions.npz (labels_<mesh>, labels_raw_<mesh>,
+        probs_<mesh> as float16)."""
+        with tempfile.TemporaryDirectory() as tmp:
+            d = Path(tmp)
+            (d / "config.yaml").write_text(config_yaml)
+            buf = io.StringIO()
+            writer = csv.DictWriter(buf, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+            (d / "per_mesh.csv").write_text(buf.getvalue())
+            np.savez_compressed(d / "predictions.npz", **predictions)
+            for name in ("config.yaml", "per_mesh.csv", "predictions.npz"):
+                self.client.log_artifact(run_id, str(d / name))
+
+    def lightning_logger(self, run_id: str):
+        """Lightning's MLflow logger writing epoch curves into this run (and leaving it open)."""
+        from pytorch_lightning.loggers import MLFlowLogger
+
+        class _FoldLogger(MLFlowLogger):
+            def finalize(self, status: str = "success") -> None:
+                pass  # the run ends after evaluation, in Tracker.run
+
+        return _FoldLogger(tracking_uri=self.uri, run_id=run_id)

@@ -1,0 +1,133 @@
+"""A fold's data (DESIGN "data flow"): per-mesh feature sets -> multi-scale X^1..X^B -> faces
+sampled per training mesh as the budget says -> standardised on the training faces.
+
+Arrays are (faces, branches, features) float32: row u holds X^1(u), ..., X^B(u).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterator
+
+import numpy as np
+import pytorch_lightning as pl
+import torch
+from torch.utils.data import BatchSampler, DataLoader, Dataset, RandomSampler
+
+from meshseg.data.datasets import MeshDataset
+from meshseg.data.mesh import Mesh
+from meshseg.features.cache import FeatureCache
+from meshseg.features.rings import ring_means
+from meshseg.features.sets import FeatureSet, compute_dataset
+
+
+@dataclass
+class FeatureSource:
+    """Where a fold's per-face inputs come from: dataset, feature set, cache, scales."""
+
+    dataset: MeshDataset
+    category: str
+    features: FeatureSet
+    cache_root: str | None
+    branches: int = 3
+    ring_adjacency: str = "edge"
+
+    def prepare(self, mesh_ids, workers: int = 2) -> int:
+        """Compute (in parallel) the features the cache lacks for `mesh_ids`; returns how many meshes."""
+        cache = FeatureCache(self.cache_root)
+        missing = [m for m in mesh_ids
+                   if not self.features.cached(self.dataset.load(self.category, m).content_hash, cache)]
+        if missing:
+            compute_dataset(self.dataset, self.features, self.cache_root, [(self.category, m) for m in missing],
+                            workers=min(workers, len(missing)))
+        return len(missing)
+
+    def load(self, mesh_id: str) -> tuple[Mesh, list[np.ndarray]]:
+        """The mesh and its [X^1, ..., X^B], each (faces, features) float32."""
+        mesh = self.dataset.load(self.category, mesh_id)
+        X = self.features.compute(mesh.vertices, mesh.faces, mesh.content_hash, FeatureCache(self.cache_root))
+        if not np.isfinite(X).all():
+            raise FloatingPointError(f"{mesh.source}: non-finite {self.features.name} features")
+        return mesh, ring_means(X, mesh.faces, self.branches, self.ring_adjacency)
+
+
+class Standardiser:
+    """Per (branch, feature) zero mean and unit variance, fitted on training faces. A constant
+    column (e.g. a CF that is identically 0 on a category) is centred and left unscaled."""
+
+    def __init__(self, X: np.ndarray):
+        X64 = X.astype(np.float64, copy=False)
+        self.mean = X64.mean(axis=0).astype(np.float32)
+        std = X64.std(axis=0)
+        self.scale = np.where(std > 1e-12, std, 1.0).astype(np.float32)
+
+    def __call__(self, X: np.ndarray) -> np.ndarray:
+        """Standardise in place (X is the caller's fresh array) and return it."""
+        X -= self.mean
+        X /= self.scale
+        return X
+
+
+@dataclass
+class TrainSet:
+    X: np.ndarray            # (n, branches, features) float32, standardised
+    y: np.ndarray            # (n,) int64
+    standardiser: Standardiser
+    mesh_faces: int          # faces of the training meshes before sampling
+
+
+def sample_faces(n_faces: int, per_mesh: int | None, rng: np.random.Generator) -> np.ndarray:
+    """Uniformly sampled face indices (sorted, without replacement); all faces if `per_mesh` is None
+    or at least the mesh's face count."""
+    if per_mesh is None or per_mesh >= n_faces:
+        return np.arange(n_faces)
+    return np.sort(rng.choice(n_faces, size=per_mesh, replace=False))
+
+
+def build_train(source: FeatureSource, mesh_ids, faces_per_mesh: int | None, seed: int) -> TrainSet:
+    """Sampled faces of every training mesh, all branches, standardised on themselves."""
+    rng = np.random.default_rng(seed)
+    xs, ys, total = [], [], 0
+    for mesh_id in mesh_ids:
+        mesh, scales = source.load(mesh_id)
+        idx = sample_faces(mesh.n_faces, faces_per_mesh, rng)
+        xs.append(np.stack([X[idx] for X in scales], axis=1))
+        ys.append(mesh.labels[idx])
+        total += mesh.n_faces
+    X = np.concatenate(xs)
+    standardiser = Standardiser(X)
+    return TrainSet(standardiser(X), np.concatenate(ys).astype(np.int64), standardiser, total)
+
+
+def iter_test_inputs(source: FeatureSource, mesh_ids, standardiser: Standardiser) -> Iterator[tuple[Mesh, np.ndarray]]:
+    """Each test mesh with its full (faces, branches, features) input, standardised with the
+    training statistics; one mesh in memory at a time."""
+    for mesh_id in mesh_ids:
+        mesh, scales = source.load(mesh_id)
+        yield mesh, standardiser(np.stack(scales, axis=1))
+
+
+class _Rows(Dataset):
+    """Indexable by a list of rows: one fancy-index per batch instead of one per sample."""
+
+    def __init__(self, X: np.ndarray, y: np.ndarray):
+        self.X, self.y = torch.from_numpy(X), torch.from_numpy(y)
+
+    def __len__(self) -> int:
+        return len(self.y)
+
+    def __getitem__(self, rows):
+        return self.X[rows], self.y[rows]
+
+
+class FoldDataModule(pl.LightningDataModule):
+    """The training faces of one fold, shuffled each epoch with a seeded generator."""
+
+    def __init__(self, train: TrainSet, batch_size: int, seed: int):
+        super().__init__()
+        self.train, self.batch_size, self.seed = train, int(batch_size), int(seed)
+
+    def train_dataloader(self) -> DataLoader:
+        rows = _Rows(self.train.X, self.train.y)
+        order = RandomSampler(rows, generator=torch.Generator().manual_seed(self.seed))
+        return DataLoader(rows, sampler=BatchSampler(order, self.batch_size, drop_last=False), batch_size=None)

@@ -1,0 +1,231 @@
+"""`python -m meshseg.run`: config groups, validation, tracking contract, resume, parallel workers.
+
+Runs use a small synthetic set (5 meshes per category), a cheap feature set and budget=smoke, so a
+run takes seconds; the feature cache is shared by the whole session.
+"""
+
+import os
+import re
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hydra import compose, initialize_config_dir
+from mlflow import MlflowClient
+
+from conftest import REPO
+from meshseg import CONF_DIR
+from meshseg.tracking import CONTRACT_TAGS, config_hash, flatten
+
+SMALL = ["dataset.meshes_per_category=5", "features.groups=[curvature,pca,gc]", "features.name=local", "budget=smoke"]
+
+
+def compose_run(*overrides):
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return compose("run", overrides=list(overrides))
+
+
+@pytest.fixture
+def store(tmp_path, cache_dir, monkeypatch):
+    """Environment for one test's runs: its own MLflow store and logs, the session's feature cache."""
+    env = {"MESHSEG_CACHE_DIR": str(cache_dir), "MESHSEG_MLFLOW_DIR": str(tmp_path / "mlruns"),
+           "MESHSEG_LOG_DIR": str(tmp_path / "logs")}
+    for k, v in env.items():
+        monkeypatch.setenv(k, v)
+    return tmp_path / "mlruns"
+
+
+def meshseg_run(*overrides, timeout=600, **kw):
+    return subprocess.run([sys.executable, "-m", "meshseg.run", *overrides], cwd=REPO, capture_output=True,
+                          text=True, timeout=timeout, env=os.environ.copy(), **kw)
+
+
+def runs(store: Path, status: str | None = None):
+    client = MlflowClient(f"sqlite:///{store}/mlflow.db")
+    exp = client.get_experiment_by_name("meshseg")
+    found = client.search_runs([exp.experiment_id]) if exp else []
+    return [r for r in found if status is None or r.info.status == status]
+
+
+# --- configuration --------------------------------------------------------------------------------
+
+GROUPS = {"dataset": ["synthetic", "psb", "coseg"], "features": ["f800", "f600", "cf0", "cf1", "cf0_1", "cf1_5", "cf0_5"],
+          "model": ["cnn1d"], "split": ["loo", "5fold", "fixed"], "refine": ["none"],
+          "budget": ["smoke", "demo", "cpu", "paper"], "trainer": ["cpu", "gpu"], "tracking": ["mlflow"]}
+
+
+@pytest.mark.parametrize("group, option", [(g, o) for g, opts in GROUPS.items() for o in opts])
+def test_every_group_option_composes(group, option):
+    cfg = compose_run(f"{group}={option}")
+    node = cfg[group]
+    if group == "budget":
+        assert node.name == option and node.epochs >= 1
+    elif group == "features":
+        assert node.name == option
+    elif group in ("model", "refine"):
+        assert node.name == option
+    elif group == "trainer":
+        assert node.accelerator == option
+    assert cfg.branches == 3 and cfg.seed == 0 and cfg.category is None and cfg.fold is None
+
+
+@pytest.mark.parametrize("dataset, budget", [("synthetic", "demo"), ("psb", "cpu"), ("coseg", "cpu")])
+def test_each_dataset_brings_its_default_budget(dataset, budget):
+    assert compose_run(f"dataset={dataset}").budget.name == budget
+    assert compose_run(f"dataset={dataset}", "budget=smoke").budget.name == "smoke"
+
+
+def test_paper_budget_is_every_face_for_50_epochs():
+    b = compose_run("budget=paper").budget
+    assert b.faces_per_mesh is None and b.epochs == 50
+
+
+def test_model_is_the_papers_1d_cnn():
+    m = compose_run().model
+    assert (list(m.net.channels), list(m.net.kernels), m.net.hidden) == ([16, 32], [15, 11], 172)
+    assert (m.net.negative_slope, m.net.dropout, m.optim.momentum) == (0.2, 0.5, 0.9)
+    assert (m.optim.lr_start, m.optim.lr_end) == (1e-2, 1e-4)
+
+
+def test_bad_values_fail_at_once_listing_what_is_allowed(store):
+    r = meshseg_run("branches=5", *SMALL)
+    assert r.returncode == 1 and "error: branches=5 is not allowed: choose one of [1, 2, 3, 4]" in r.stderr
+    r = meshseg_run("category=chair", *SMALL, "-m")  # sweeps are checked before any job starts
+    assert r.returncode == 1 and "has no category 'chair'; it has ['table', 'cup', 'figure']" in r.stderr
+    assert not (store / "mlflow.db").exists() or runs(store) == []
+    r = meshseg_run("model=transformer", *SMALL)
+    assert r.returncode == 1 and "Could not find 'model/transformer'" in r.stderr and "cnn1d" in r.stderr
+    r = meshseg_run("fold=9", *SMALL)
+    assert r.returncode == 1 and "error: fold=9 is out of range: split 5fold of table has folds 0..4" in r.stderr
+
+
+def test_config_hash_ignores_paths_and_sees_knobs():
+    cfg = {"paths": {"cache_dir": "a"}, "branches": 3, "model": {"hidden": 172}}
+    h = config_hash(cfg, ["paths"], {"data_hash": "x"})
+    assert h == config_hash({**cfg, "paths": {"cache_dir": "b"}}, ["paths"], {"data_hash": "x"})
+    assert h != config_hash({**cfg, "branches": 2}, ["paths"], {"data_hash": "x"})
+    assert h != config_hash(cfg, ["paths"], {"data_hash": "y"})
+    assert flatten({"a": {"b": [1, {"c": 2}]}}) == {"a.b.0": 1, "a.b.1.c": 2}
+
+
+# --- runs ------------------------------------------------------------------------------------------
+
+def test_one_run_follows_the_tracking_contract_and_reruns_skip(store):
+    r = meshseg_run(*SMALL, "category=cup", "fold=1")
+    assert r.returncode == 0, r.stderr[-3000:]
+    (run,) = runs(store)
+    assert run.info.status == "FINISHED"
+    tags = run.data.tags
+    assert set(CONTRACT_TAGS) <= set(tags)
+    assert (tags["dataset"], tags["category"], tags["fold"], tags["split"], tags["budget"], tags["model"],
+            tags["branches"], tags["refine"], tags["features"]) == ("synthetic", "cup", "1", "5fold", "smoke", "cnn1d", "3", "none", "local")
+    m = run.data.metrics
+    assert 0 <= m["test_acc_raw"] <= 1 and m["test_acc"] == m["test_acc_raw"]  # refine=none
+    assert run.data.params["budget.epochs"] == "2" and run.data.params["category"] == "cup"
+    client = MlflowClient(f"sqlite:///{store}/mlflow.db")
+    assert len(client.get_metric_history(run.info.run_id, "train_loss")) == 2  # one point per epoch
+    lrs = [h.value for h in client.get_metric_history(run.info.run_id, "lr")]
+    assert np.allclose(lrs, [1e-2, 1e-4])
+    local = Path(client.download_artifacts(run.info.run_id, ""))
+    assert sorted(p.name for p in local.iterdir()) == ["config.yaml", "per_mesh.csv", "predictions.npz"]
+    table = (local / "per_mesh.csv").read_text().splitlines()
+    assert table[0] == "mesh,faces,area,acc_raw,acc" and table[1].startswith("1,")  # 5fold: fold 1 tests mesh 1
+    assert np.isclose(float(table[1].split(",")[4]), m["test_acc"])
+    with np.load(local / "predictions.npz") as z:
+        assert z["labels_1"].shape == (int(table[1].split(",")[1]),)
+        assert np.allclose(z["probs_1"].astype(np.float32).sum(axis=1), 1, atol=1e-2)
+
+    again = meshseg_run(*SMALL, "category=cup", "fold=1")
+    assert again.returncode == 0 and "skip: cnn1d 3B synthetic/cup 5fold fold 1" in again.stdout + again.stderr
+    assert len(runs(store)) == 1
+
+
+def test_same_seed_twice_gives_identical_results(store, tmp_path):
+    from meshseg.run import run
+
+    accs, probs = [], []
+    for i in range(2):
+        cfg = compose_run(*SMALL, "category=figure", "fold=2", f"paths.mlflow_dir={tmp_path}/store{i}")
+        accs.append(run(cfg))
+        client = MlflowClient(f"sqlite:///{tmp_path}/store{i}/mlflow.db")
+        (r,) = client.search_runs([client.get_experiment_by_name("meshseg").experiment_id])
+        with np.load(client.download_artifacts(r.info.run_id, "predictions.npz")) as z:
+            probs.append(z["probs_2"])
+    assert accs[0] == accs[1]
+    assert np.array_equal(probs[0], probs[1])
+
+
+def test_a_failing_category_is_marked_failed_and_the_others_finish(store, tmp_path):
+    """A COSEG-layout root with two sets; mesh 3 of `tables` is truncated. Every fold of `tables`
+    needs it, so both fail (error text tagged); both folds of `cups` finish; the sweep exits non-zero."""
+    from meshseg.data.datasets import Synthetic
+    from meshseg.data.io import write_off
+
+    for name, category in [("cups", "cup"), ("tables", "table")]:
+        root = tmp_path / "coseg" / name
+        (root / "shapes").mkdir(parents=True)
+        (root / "gt").mkdir()
+        for mesh in Synthetic(categories=[category], meshes_per_category=4, max_faces=4000).meshes(category):
+            write_off(root / "shapes" / f"{mesh.id}.off", mesh.vertices, mesh.faces)
+            (root / "gt" / f"{mesh.id}.seg").write_text("\n".join(str(v + 1) for v in mesh.labels) + "\n")
+    bad = tmp_path / "coseg" / "tables" / "shapes" / "3.off"
+    bad.write_text("\n".join(bad.read_text().splitlines()[:-40]) + "\n")
+    r = meshseg_run("dataset=coseg", f"dataset.root={tmp_path / 'coseg'}", "budget=smoke", "split.k=2",
+                    "features.groups=[curvature,pca,gc]", "features.name=local", "-m")
+    assert r.returncode != 0
+    done = runs(store)
+    assert sorted((x.data.tags["category"], x.data.tags["fold"], x.info.status) for x in done) == [
+        ("cups", "0", "FINISHED"), ("cups", "1", "FINISHED"), ("tables", "0", "FAILED"), ("tables", "1", "FAILED")]
+    for failed in runs(store, "FAILED"):
+        assert f"{bad}:" in failed.data.tags["error"]
+
+
+def test_killed_sweep_resumes_doing_only_what_is_missing(store):
+    """SIGKILL a sweep once two folds have FINISHED; rerunning skips those and redoes the rest."""
+    args = [sys.executable, "-m", "meshseg.run", *SMALL, "category=table", "-m"]
+    proc = subprocess.Popen(args, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    db = store / "mlflow.db"
+    deadline = time.time() + 300
+    finished = 0
+    try:
+        while time.time() < deadline and proc.poll() is None:
+            if db.exists():
+                try:
+                    with sqlite3.connect(db, timeout=1) as con:
+                        finished = con.execute("select count(*) from runs where status = 'FINISHED'").fetchone()[0]
+                except sqlite3.OperationalError:
+                    finished = 0
+                if finished >= 2:
+                    os.killpg(proc.pid, signal.SIGKILL)
+                    break
+            time.sleep(0.05)
+    finally:
+        proc.wait(timeout=60)
+    assert proc.returncode == -signal.SIGKILL, "the sweep ended before it could be killed"
+    before = {r.data.tags["fold"] for r in runs(store, "FINISHED")}
+    assert 2 <= len(before) < 5
+
+    r = meshseg_run(*SMALL, "category=table", "-m")
+    assert r.returncode == 0, r.stderr[-3000:]
+    out = r.stdout + r.stderr
+    skipped = re.findall(r"skip: cnn1d 3B synthetic/table 5fold fold (\d)", out)
+    assert sorted(before) == sorted(skipped)
+    finished = runs(store, "FINISHED")
+    assert sorted(int(x.data.tags["fold"]) for x in finished) == [0, 1, 2, 3, 4]
+    assert runs(store, "RUNNING") == []  # a run killed mid-way is marked KILLED once redone
+    rerun = meshseg_run(*SMALL, "category=table", "-m")
+    assert (rerun.stdout + rerun.stderr).count("skip:") == 5 and len(runs(store, "FINISHED")) == 5
+
+
+def test_two_joblib_workers_share_one_sqlite_store(store):
+    r = meshseg_run(*SMALL, "category=cup", "fold=0,2", "trainer.threads=1", "hydra/launcher=joblib",
+                    "hydra.launcher.n_jobs=2", "-m")
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "locked" not in r.stderr
+    done = runs(store, "FINISHED")
+    assert sorted(x.data.tags["fold"] for x in done) == ["0", "2"]
