@@ -94,8 +94,12 @@ def run(cfg: DictConfig) -> float:
     from meshseg.training.data import FeatureSource
     from meshseg.training.fit import fit_predict
 
+    from meshseg.models.cnn1d import tune_glibc_malloc
+
     if cfg.trainer.threads:
         torch.set_num_threads(int(cfg.trainer.threads))
+    if cfg.trainer.get("malloc_tune"):
+        tune_glibc_malloc()  # speed only: results are the same either way
     dataset = build_dataset(cfg.dataset)
     category, fold = resolve_cell(cfg, dataset)
     features = FeatureSet.from_config(cfg.features)

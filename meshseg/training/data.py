@@ -6,7 +6,7 @@ Arrays are (faces, branches, features) float32: row u holds X^1(u), ..., X^B(u).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Iterator
 
 import numpy as np
@@ -31,12 +31,18 @@ class FeatureSource:
     cache_root: str | None
     branches: int = 3
     ring_adjacency: str = "edge"
+    _meshes: dict = field(default_factory=dict, repr=False)  # loaded once per fold (synthetic ones are generated)
+
+    def mesh(self, mesh_id: str) -> Mesh:
+        if mesh_id not in self._meshes:
+            self._meshes[mesh_id] = self.dataset.load(self.category, mesh_id)
+        return self._meshes[mesh_id]
 
     def prepare(self, mesh_ids, workers: int = 2) -> int:
         """Compute (in parallel) the features the cache lacks for `mesh_ids`; returns how many meshes."""
         cache = FeatureCache(self.cache_root)
         missing = [m for m in mesh_ids
-                   if not self.features.cached(self.dataset.load(self.category, m).content_hash, cache)]
+                   if not self.features.cached(self.mesh(m).content_hash, cache)]
         if missing:
             compute_dataset(self.dataset, self.features, self.cache_root, [(self.category, m) for m in missing],
                             workers=min(workers, len(missing)))
@@ -44,7 +50,7 @@ class FeatureSource:
 
     def load(self, mesh_id: str) -> tuple[Mesh, list[np.ndarray]]:
         """The mesh and its [X^1, ..., X^B], each (faces, features) float32."""
-        mesh = self.dataset.load(self.category, mesh_id)
+        mesh = self.mesh(mesh_id)
         X = self.features.compute(mesh.vertices, mesh.faces, mesh.content_hash, FeatureCache(self.cache_root))
         if not np.isfinite(X).all():
             raise FloatingPointError(f"{mesh.source}: non-finite {self.features.name} features")
