@@ -42,6 +42,9 @@ def check_knobs(cfg: DictConfig) -> None:
     """Values no config group can check for itself; each message lists what is allowed."""
     if cfg.branches not in BRANCHES:
         raise ValueError(f"branches={cfg.branches} is not allowed: choose one of {list(BRANCHES)}")
+    fixed = cfg.model.get("branches")
+    if fixed is not None and cfg.branches != fixed:
+        raise ValueError(f"branches={cfg.branches} is not allowed with model={cfg.model.name}: it takes branches={fixed}")
     if cfg.ring_adjacency not in RING_ADJACENCY:
         raise ValueError(f"ring_adjacency={cfg.ring_adjacency} is not allowed: choose one of {list(RING_ADJACENCY)}")
     b = cfg.budget
@@ -80,6 +83,18 @@ def sweep_cells(cfg: DictConfig, category_given: bool, fold_given: bool) -> list
             cells.extend((None if category_given else category, f) for f in range(n))
     Tracker(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_dir)
     return cells
+
+
+def refine_features(mesh, cfg: DictConfig):
+    """The mesh's AGD features (the paper's f_u in graphcut_agd; cached like every group), else None."""
+    if cfg.refine.name != "graphcut_agd":
+        return None
+    from meshseg.features.cache import FeatureCache
+    from meshseg.features.sets import FeatureSet, parse_entry
+
+    params = dict((cfg.features.get("params") or {}).get("agd") or {})  # the run's AGD settings, if it set any
+    agd = FeatureSet("agd", (parse_entry("agd"),), {"agd": params})
+    return agd.compute(mesh.vertices, mesh.faces, mesh.content_hash, FeatureCache(cfg.paths.cache_dir))
 
 
 def run(cfg: DictConfig) -> float:
@@ -125,7 +140,8 @@ def run(cfg: DictConfig) -> float:
         preds = fit_predict(source, fold, cfg.model, cfg.budget, cfg.trainer, cfg.seed, cfg.workers,
                             logger=tracker.lightning_logger(run_id))
         raw = [p.argmax(axis=1) for p in preds.probabilities]
-        labels = [refine_labels(m, p, cfg.refine) for m, p in zip(preds.meshes, preds.probabilities)]
+        agd = [refine_features(m, cfg) for m in preds.meshes]
+        labels = [refine_labels(m, p, cfg.refine, f) for m, p, f in zip(preds.meshes, preds.probabilities, agd)]
         rows = mesh_scores(preds.meshes, raw, labels)
         metrics = {"test_acc": np.mean([r["acc"] for r in rows]), "test_acc_raw": np.mean([r["acc_raw"] for r in rows]),
                    **{f"time_{k}_s": v for k, v in preds.timings.items()}, **{f"n_{k}": v for k, v in preds.counts.items()},
