@@ -55,7 +55,8 @@ def runs(store: Path, status: str | None = None):
 # --- configuration --------------------------------------------------------------------------------
 
 GROUPS = {"dataset": ["synthetic", "psb", "coseg"], "features": ["f800", "f600", "cf0", "cf1", "cf0_1", "cf1_5", "cf0_5"],
-          "model": ["cnn1d"], "split": ["loo", "5fold", "fixed"], "refine": ["none"],
+          "model": ["cnn1d", "cnn2d", "pca_nn", "ae_nn", "ae_rf", "rf"], "split": ["loo", "5fold", "fixed"],
+          "refine": ["none", "graphcut_classic", "graphcut_agd"],
           "budget": ["smoke", "demo", "cpu", "paper"], "trainer": ["cpu", "gpu"], "tracking": ["mlflow"]}
 
 
@@ -71,7 +72,9 @@ def test_every_group_option_composes(group, option):
         assert node.name == option
     elif group == "trainer":
         assert node.accelerator == option
-    assert cfg.branches == 3 and cfg.seed == 0 and cfg.category is None and cfg.fold is None
+    single_scale = group == "model" and option != "cnn1d"  # the baselines fix branches: 1
+    assert cfg.branches == (1 if single_scale else 3) and cfg.seed == 0 and cfg.category is None and cfg.fold is None
+    assert cfg.refine.name == (option if group == "refine" else "graphcut_agd")  # the paper's refinement by default
 
 
 @pytest.mark.parametrize("dataset, budget", [("synthetic", "demo"), ("psb", "cpu"), ("coseg", "cpu")])
@@ -123,9 +126,9 @@ def test_one_run_follows_the_tracking_contract_and_reruns_skip(store):
     tags = run.data.tags
     assert set(CONTRACT_TAGS) <= set(tags)
     assert (tags["dataset"], tags["category"], tags["fold"], tags["split"], tags["budget"], tags["model"],
-            tags["branches"], tags["refine"], tags["features"]) == ("synthetic", "cup", "1", "5fold", "smoke", "cnn1d", "3", "none", "local")
+            tags["branches"], tags["refine"], tags["features"]) == ("synthetic", "cup", "1", "5fold", "smoke", "cnn1d", "3", "graphcut_agd", "local")
     m = run.data.metrics
-    assert 0 <= m["test_acc_raw"] <= 1 and m["test_acc"] == m["test_acc_raw"]  # refine=none
+    assert 0 <= m["test_acc_raw"] <= 1 and 0 <= m["test_acc"] <= 1
     assert run.data.params["budget.epochs"] == "2" and run.data.params["category"] == "cup"
     client = MlflowClient(f"sqlite:///{store}/mlflow.db")
     assert len(client.get_metric_history(run.info.run_id, "train_loss")) == 2  # one point per epoch
