@@ -21,21 +21,12 @@ from omegaconf import DictConfig, OmegaConf
 from meshseg import CONF_DIR
 from meshseg.data.datasets import MeshDataset, build_dataset
 from meshseg.data.mesh import MeshDataError
-from meshseg.data.splits import Fold, make_folds
+from meshseg.data.splits import Fold, folds_for, split_name
 
 log = logging.getLogger("meshseg.run")
 
 BRANCHES = (1, 2, 3, 4)
 RING_ADJACENCY = ("edge", "vertex")
-
-
-def split_name(split) -> str:
-    """The split's tag: loo, 5fold, fixed."""
-    return f"{split.k}fold" if split.protocol == "kfold" else split.protocol
-
-
-def folds_of(cfg: DictConfig, dataset: MeshDataset, category: str) -> list[Fold]:
-    return make_folds(dataset, category, cfg.split.protocol, k=cfg.split.get("k", 5), split_file=cfg.split.get("file"))
 
 
 def check_knobs(cfg: DictConfig) -> None:
@@ -56,7 +47,7 @@ def resolve_cell(cfg: DictConfig, dataset: MeshDataset) -> tuple[str, Fold]:
     """The run's category (default: the dataset's first) and fold (default: 0), checked."""
     check_knobs(cfg)
     category = dataset.check_category(cfg.category) if cfg.category is not None else dataset.categories[0]
-    folds = folds_of(cfg, dataset, category)
+    folds = folds_for(dataset, category, cfg.split)
     index = 0 if cfg.fold is None else cfg.fold
     if not (isinstance(index, int) and 0 <= index < len(folds)):
         raise ValueError(f"fold={cfg.fold} is out of range: split {split_name(cfg.split)} of {category} has folds 0..{len(folds) - 1}")
@@ -79,7 +70,7 @@ def sweep_cells(cfg: DictConfig, category_given: bool, fold_given: bool) -> list
             resolve_cell(OmegaConf.merge(cfg, {"category": category}), dataset)
             cells.append((None if category_given else category, None))
         else:
-            n = len(folds_of(cfg, dataset, category))
+            n = len(folds_for(dataset, category, cfg.split))
             cells.extend((None if category_given else category, f) for f in range(n))
     Tracker(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_dir)
     return cells
@@ -105,7 +96,7 @@ def run(cfg: DictConfig) -> float:
     from meshseg.features.sets import FeatureSet
     from meshseg.metrics import mesh_scores
     from meshseg.refine import refine_labels
-    from meshseg.tracking import Tracker, config_hash, flatten, git_sha
+    from meshseg.tracking import Tracker, flatten, fold_identity, git_sha
     from meshseg.training.data import FeatureSource
     from meshseg.training.fit import fit_predict
 
@@ -118,9 +109,7 @@ def run(cfg: DictConfig) -> float:
     dataset = build_dataset(cfg.dataset)
     category, fold = resolve_cell(cfg, dataset)
     features = FeatureSet.from_config(cfg.features)
-    config = OmegaConf.to_container(cfg, resolve=True)
-    config.update(category=category, fold=fold.index)
-    chash = config_hash(config, cfg.tracking.hash_exclude, {"data_hash": dataset.data_hash})
+    config, chash = fold_identity(cfg, category, fold.index, dataset.data_hash)
     name = f"{cfg.model.name} {cfg.branches}B {dataset.name}/{category} {split_name(cfg.split)} fold {fold.index}"
 
     tracker = Tracker(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_dir)
@@ -152,6 +141,8 @@ def run(cfg: DictConfig) -> float:
             predictions.update({f"labels_{m.id}": lab.astype(np.int16), f"labels_raw_{m.id}": r.astype(np.int16),
                                 f"probs_{m.id}": p.astype(np.float16)})
         tracker.log_fold(run_id, OmegaConf.to_yaml(config), rows, predictions)
+        if cfg.tracking.renders:
+            tracker.log_pictures(run_id, preds.meshes, labels, rows, int(cfg.tracking.renders))
     log.info("done: %s test_acc %.4f (raw %.4f), train %.1f s, run %s", name, metrics["test_acc"],
              metrics["test_acc_raw"], preds.timings["train"], run_id)
     return float(metrics["test_acc"])

@@ -1,6 +1,7 @@
 """MLflow under the tracking contract (DESIGN "Tracking contract"): one run per (method config,
 dataset, category, split, fold), tagged with every knob the report needs; params are the flattened
-resolved config; artifacts are the config, a per-mesh table and the per-face predictions.
+resolved config; artifacts are the config, a per-mesh table, the per-face predictions and pictures
+(renders of test meshes, predicted beside ground truth, and the confusion matrix).
 
 A run's identity is `config_hash`: a config whose hash already has a FINISHED run is not run again,
 so an interrupted sweep, rerun, does only what is missing. A run that raises ends FAILED with its
@@ -51,6 +52,16 @@ def config_hash(config: dict, exclude=(), extra: dict | None = None) -> str:
               if not any(k == p or k.startswith(p + ".") for p in prefixes)}
     blob = json.dumps({"config": leaves, "extra": extra or {}}, sort_keys=True, default=str)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def fold_identity(cfg, category: str, fold: int, data_hash: str) -> tuple[dict, str]:
+    """The resolved config of one fold's run and its config hash: what `meshseg.run` logs and skips on,
+    and what the report looks runs up by."""
+    from omegaconf import OmegaConf
+
+    config = OmegaConf.to_container(cfg, resolve=True)
+    config.update(category=category, fold=fold)
+    return config, config_hash(config, cfg.tracking.hash_exclude, {"data_hash": data_hash})
 
 
 def git_sha() -> str:
@@ -177,6 +188,28 @@ class Tracker:
             np.savez_compressed(d / "predictions.npz", **predictions)
             for name in ("config.yaml", "per_mesh.csv", "predictions.npz"):
                 self.client.log_artifact(run_id, str(d / name))
+
+    def log_pictures(self, run_id: str, meshes, labels, rows: list[dict], n: int) -> None:
+        """Artifacts the MLflow UI shows: renders/<mesh>.png (predicted beside ground truth) for up to
+        `n` test meshes — the worst, the best, then the median by accuracy, so that what went wrong
+        is in view — and confusion.png, the area-weighted confusion over every test mesh."""
+        from meshseg.metrics import confusion_matrix
+        from meshseg.render import confusion_png, label_comparison_png
+
+        names = list(meshes[0].label_names)
+        order = np.argsort([r["acc"] for r in rows], kind="stable")
+        picks = list(dict.fromkeys([order[0], order[-1], order[len(order) // 2], *order]))[:n]
+        confusion = sum(confusion_matrix(lab, m.labels, len(names), m.face_areas) for m, lab in zip(meshes, labels))
+        with tempfile.TemporaryDirectory() as tmp:
+            d = Path(tmp)
+            for i in picks:
+                m = meshes[i]
+                path = d / f"mesh_{m.id}.png"
+                path.write_bytes(label_comparison_png(m.vertices, m.faces, labels[i], m.labels, names,
+                                                      title=f"{m.category} mesh {m.id}"))
+                self.client.log_artifact(run_id, str(path), "renders")
+            (d / "confusion.png").write_bytes(confusion_png(confusion, names, title="area-weighted, all test meshes"))
+            self.client.log_artifact(run_id, str(d / "confusion.png"))
 
     def lightning_logger(self, run_id: str):
         """Lightning's MLflow logger writing epoch curves into this run (and leaving it open)."""

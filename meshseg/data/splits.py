@@ -116,3 +116,13 @@ def make_folds(dataset: MeshDataset, category: str, protocol: str, k: int = 5,
         if uncovered:
             raise ValueError(f"{category} fold {fold.index}: meshes {sort_ids(uncovered)} are in neither train nor test")
     return folds
+
+
+def split_name(split) -> str:
+    """A split config's tag: loo, 5fold, fixed."""
+    return f"{split.k}fold" if split.protocol == "kfold" else split.protocol
+
+
+def folds_for(dataset: MeshDataset, category: str, split) -> list[Fold]:
+    """The folds a split config (conf/split) gives one category."""
+    return make_folds(dataset, category, split.protocol, k=split.get("k", 5), split_file=split.get("file"))

@@ -1,0 +1,123 @@
+"""A study manifest (experiments/*.yaml): which runs make each cell of one paper table or figure,
+and the published numbers beside them. The schema is in experiments/README.md."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import yaml
+
+
+class ManifestError(ValueError):
+    """A manifest that cannot be used; the message names the file and the problem."""
+
+    def __init__(self, path, problem: str):
+        super().__init__(f"{path}: {problem}")
+
+
+@dataclass(frozen=True)
+class Column:
+    key: str
+    label: str
+    overrides: tuple[str, ...] | None  # None: the paper's number only, no runs (e.g. ShapePFCN)
+
+
+@dataclass(frozen=True)
+class Set:
+    name: str          # the row label as printed
+    category: str      # the dataset's category
+    published: tuple[float | None, ...]
+    test_meshes: int | None = None
+
+
+@dataclass(frozen=True)
+class Group:
+    name: str
+    overrides: tuple[str, ...]
+    sets: tuple[Set, ...]
+    average: str | None                          # label of the group's average row, None: no such row
+    published_average: tuple[float | None, ...]
+
+
+@dataclass(frozen=True)
+class Manifest:
+    name: str
+    title: str
+    source: str
+    note: str
+    overrides: tuple[str, ...]
+    columns: tuple[Column, ...]
+    groups: tuple[Group, ...]
+    total: str | None                            # label of the average over every set of every group
+    published_total: tuple[float | None, ...]
+    path: Path
+
+    def cell_overrides(self, group: Group, column: Column) -> list[str]:
+        """Run overrides of one (group, column): the manifest's, then the group's, then the column's."""
+        return [*self.overrides, *group.overrides, *(column.overrides or ())]
+
+
+def _overrides(value, path, where: str) -> tuple[str, ...]:
+    if value is None:
+        return ()
+    if not isinstance(value, list) or not all(isinstance(o, str) and "=" in o for o in value):
+        raise ManifestError(path, f"{where}: overrides must be a list of key=value strings, got {value!r}")
+    return tuple(value)
+
+
+def _numbers(value, n: int, path, where: str) -> tuple[float | None, ...]:
+    if value is None:
+        return (None,) * n
+    if not isinstance(value, list) or len(value) != n:
+        raise ManifestError(path, f"{where}: expected a list of {n} numbers (one per column, null for none), got {value!r}")
+    for v in value:
+        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float))):
+            raise ManifestError(path, f"{where}: {v!r} is not a number")
+    return tuple(None if v is None else float(v) for v in value)
+
+
+def load_manifest(path: str | Path) -> Manifest:
+    """Read and check a manifest; every problem is reported with the file's name."""
+    path = Path(path)
+    if not path.is_file():
+        raise ManifestError(path, "no such manifest file")
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        raise ManifestError(path, f"not valid YAML: {e}") from None
+    if not isinstance(doc, dict):
+        raise ManifestError(path, "a manifest is a mapping with name, columns and groups")
+    missing = [k for k in ("name", "title", "columns", "groups") if k not in doc]
+    if missing:
+        raise ManifestError(path, f"missing key(s) {missing}")
+    if doc["name"] != path.stem:
+        raise ManifestError(path, f"name {doc['name']!r} differs from the file name {path.stem!r}")
+    columns = []
+    for i, c in enumerate(doc["columns"] or []):
+        if not isinstance(c, dict) or not {"key", "label"} <= set(c):
+            raise ManifestError(path, f"columns[{i}]: needs key and label")
+        over = c.get("overrides")
+        columns.append(Column(str(c["key"]), str(c["label"]), None if over is None else _overrides(over, path, f"column {c['key']}")))
+    if not columns or len({c.key for c in columns}) != len(columns):
+        raise ManifestError(path, "columns must be a non-empty list with distinct keys")
+    n = len(columns)
+    groups = []
+    for g in doc["groups"] or []:
+        gname = str(g.get("name", "?"))
+        sets = []
+        for s in g.get("sets") or []:
+            if not isinstance(s, dict) or "name" not in s:
+                raise ManifestError(path, f"group {gname}: each set needs a name")
+            sets.append(Set(str(s["name"]), str(s.get("category", s["name"])),
+                            _numbers(s.get("published"), n, path, f"set {s['name']} published"), s.get("test_meshes")))
+        if not sets:
+            raise ManifestError(path, f"group {gname} has no sets")
+        groups.append(Group(gname, _overrides(g.get("overrides"), path, f"group {gname}"), tuple(sets), g.get("average"),
+                            _numbers(g.get("published_average"), n, path, f"group {gname} published_average")))
+    if not groups:
+        raise ManifestError(path, "no groups")
+    total = doc.get("total") or {}
+    return Manifest(str(doc["name"]), str(doc["title"]), str(doc.get("source", "")), str(doc.get("note", "") or "").strip(),
+                    _overrides(doc.get("overrides"), path, "manifest"), tuple(columns), tuple(groups),
+                    total.get("label"), _numbers(total.get("published"), n, path, "total published"), path)

@@ -1,0 +1,249 @@
+"""A manifest's table from the logged runs (DESIGN "Tracking contract").
+
+A cell is one (column, set): the mean accuracy over all test meshes of all folds, with a percentile
+bootstrap interval over those meshes. Runs are found by the config hash `meshseg.run` gives them, so
+only runs made with exactly the cell's configuration (budget included) count. A cell whose folds are
+not all FINISHED is incomplete and has no value. An average row is the mean of its sets' values
+(the paper's way: every set weighs the same), defined only when all of them are complete.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from omegaconf import OmegaConf
+
+from meshseg.report.manifest import Column, Manifest, ManifestError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Cell:
+    column: Column
+    published: float | None
+    accs: np.ndarray | None = None     # per test mesh, %, over all folds (a complete set cell)
+    folds: int = 0                     # folds the split has
+    missing: tuple[int, ...] = ()      # folds without a FINISHED run
+    problem: str | None = None         # why no run can exist (dataset lacks the category, ...)
+    budget: str | None = None
+    overrides: tuple[str, ...] = ()    # what `meshseg.run` needs to make this cell's runs
+    category: str | None = None        # the dataset's own name for the set
+    run_ids: tuple[str, ...] = ()
+    members: list["Cell"] = field(default_factory=list)   # an average's set cells
+    value: float | None = None
+    ci: tuple[float, float] | None = None
+
+    @property
+    def status(self) -> str:
+        """published | unavailable | incomplete | ok."""
+        if self.column.overrides is None:
+            return "published"
+        if self.members:
+            bad = [m.status for m in self.members]
+            return "unavailable" if "unavailable" in bad else "incomplete" if "incomplete" in bad else "ok"
+        return "unavailable" if self.problem else "incomplete" if self.missing else "ok"
+
+    @property
+    def delta(self) -> float | None:
+        return None if self.value is None or self.published is None else self.value - self.published
+
+    @property
+    def n_meshes(self) -> int:
+        return sum(m.n_meshes for m in self.members) if self.members else 0 if self.accs is None else len(self.accs)
+
+    def why(self) -> str:
+        """What keeps an incomplete or unavailable cell from having a number."""
+        if self.members:
+            n = sum(m.status != "ok" for m in self.members)
+            return f"{n} of {len(self.members)} sets not complete"
+        if self.problem:
+            return self.problem
+        return f"{len(self.missing)} of {self.folds} folds missing"
+
+
+@dataclass
+class Row:
+    label: str
+    kind: str            # set | average | total
+    group: str
+    cells: list[Cell]
+
+
+@dataclass
+class Table:
+    manifest: Manifest
+    rows: list[Row]
+    overrides: tuple[str, ...]
+    metric: str
+    level: float
+
+    @property
+    def budgets(self) -> list[str]:
+        return sorted({c.budget for r in self.rows for c in r.cells if c.budget})
+
+    @property
+    def columns(self) -> tuple[Column, ...]:
+        return self.manifest.columns
+
+
+def bootstrap_ci(samples: list[np.ndarray], n_boot: int, level: float, rng: np.random.Generator) -> tuple[float, float]:
+    """Percentile interval of the mean of per-set means, resampling the meshes of each set with
+    replacement (one set: the plain bootstrap of a mean)."""
+    stats = np.zeros(n_boot)
+    for a in samples:
+        a = np.asarray(a, np.float64)
+        stats += a[rng.integers(0, len(a), size=(n_boot, len(a)))].mean(axis=1)
+    stats /= len(samples)
+    lo, hi = np.quantile(stats, [(1 - level) / 2, (1 + level) / 2])
+    return float(lo), float(hi)
+
+
+def _match_category(dataset, name: str) -> str | None:
+    from meshseg.data.datasets import normalise_name
+
+    if name in dataset.categories:
+        return name
+    found = [c for c in dataset.categories if normalise_name(c) == normalise_name(name)]
+    return found[0] if len(found) == 1 else None
+
+
+class _Runs:
+    """FINISHED runs of one store and experiment by config hash (the newest wins), and their per-mesh tables."""
+
+    def __init__(self, uri: str, experiment: str, metric: str):
+        from mlflow import MlflowClient
+
+        from meshseg.tracking import store_uri
+
+        os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # one bar per run otherwise
+        self.client, self.metric = MlflowClient(tracking_uri=store_uri(uri)), metric
+        exp = self.client.get_experiment_by_name(experiment)
+        self.by_hash: dict[str, object] = {}
+        if exp is None:
+            return
+        token = None
+        while True:
+            page = self.client.search_runs([exp.experiment_id], "attributes.status = 'FINISHED'", max_results=1000, page_token=token)
+            for r in page:
+                h = r.data.tags.get("config_hash")
+                if h and (h not in self.by_hash or r.info.end_time > self.by_hash[h].info.end_time):
+                    self.by_hash[h] = r
+            token = page.token
+            if not token:
+                break
+
+    def mesh_accuracies(self, run) -> list[float]:
+        """The run's per-test-mesh accuracies (%) from its per_mesh.csv artifact."""
+        with tempfile.TemporaryDirectory() as tmp:
+            path = self.client.download_artifacts(run.info.run_id, "per_mesh.csv", tmp)
+            with open(path, newline="") as f:
+                return [100.0 * float(row[self.metric]) for row in csv.DictReader(f)]
+
+
+def collect(manifest: Manifest, overrides=(), *, metric: str = "acc", n_boot: int = 2000, level: float = 0.95,
+            seed: int = 0, sets=None) -> Table:
+    """Build the table of `manifest` from the runs in the store the composed config names.
+
+    `overrides` are run overrides applied after the manifest's (e.g. budget=cpu, tracking.uri=...);
+    `sets` keeps only the rows whose name or category is listed (their groups lose the average row)."""
+    from hydra import compose, initialize_config_dir
+    from hydra.errors import HydraException
+
+    from meshseg import CONF_DIR
+    from meshseg.data.datasets import build_dataset
+    from meshseg.data.mesh import MeshDataError
+    from meshseg.data.splits import folds_for
+    from meshseg.tracking import fold_identity
+
+    keep = None if sets is None else {str(s) for s in sets}
+    stores: dict[tuple[str, str], _Runs] = {}
+    datasets: dict[str, object] = {}
+    rows: list[Row] = []
+    cell_no = 0
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        for group in manifest.groups:
+            chosen = [s for s in group.sets if keep is None or s.name in keep or s.category in keep]
+            if not chosen:
+                continue
+            grid = [[Cell(c, s.published[j]) for j, c in enumerate(manifest.columns)] for s in chosen]
+            for j, column in enumerate(manifest.columns):
+                if column.overrides is None:
+                    continue
+                over = [*manifest.cell_overrides(group, column), *overrides]
+                try:
+                    cfg = compose("run", overrides=over)
+                except HydraException as e:
+                    raise ManifestError(manifest.path, f"group {group.name}, column {column.key}: {e}") from None
+                key = (cfg.tracking.uri, cfg.tracking.experiment)
+                if key not in stores:
+                    stores[key] = _Runs(*key, metric)
+                runs = stores[key]
+                dkey = OmegaConf.to_yaml(cfg.dataset)
+                if dkey not in datasets:
+                    try:
+                        datasets[dkey] = build_dataset(cfg.dataset)
+                    except (MeshDataError, OSError, ValueError) as e:
+                        datasets[dkey] = f"dataset {cfg.dataset._target_.rsplit('.', 1)[-1]} unavailable: {e}"
+                dataset = datasets[dkey]
+                for s, cell in zip(chosen, (row[j] for row in grid)):
+                    cell.budget, cell.overrides = cfg.budget.name, tuple(over)
+                    if isinstance(dataset, str):
+                        cell.problem = dataset
+                        continue
+                    category = _match_category(dataset, s.category)
+                    if category is None:
+                        cell.problem = f"dataset {dataset.name} has no category {s.category!r}"
+                        continue
+                    cell.category = category
+                    try:
+                        folds = folds_for(dataset, category, cfg.split)
+                    except (MeshDataError, ValueError) as e:
+                        cell.problem = str(e)
+                        continue
+                    found, missing = [], []
+                    for fold in folds:
+                        _, chash = fold_identity(cfg, category, fold.index, dataset.data_hash)
+                        run = runs.by_hash.get(chash)
+                        (found if run is not None else missing).append(run if run is not None else fold.index)
+                    cell.folds, cell.missing = len(folds), tuple(missing)
+                    cell.run_ids = tuple(r.info.run_id for r in found)
+                    if not missing:
+                        cell.accs = np.array([a for r in found for a in runs.mesh_accuracies(r)])
+            for s, cells in zip(chosen, grid):
+                for cell in cells:
+                    cell_no += 1
+                    if cell.status == "ok":
+                        cell.value = float(cell.accs.mean())
+                        cell.ci = bootstrap_ci([cell.accs], n_boot, level, np.random.default_rng([seed, cell_no]))
+                rows.append(Row(s.name, "set", group.name, cells))
+            if group.average and len(chosen) == len(group.sets):
+                members = rows[-len(chosen):]
+                rows.append(Row(group.average, "average", group.name,
+                                _averages(manifest, [r.cells for r in members], group.published_average, n_boot, level, seed, cell_no)))
+                cell_no += len(manifest.columns)
+    if manifest.total and keep is None:
+        every = [r.cells for r in rows if r.kind == "set"]
+        rows.append(Row(manifest.total, "total", "", _averages(manifest, every, manifest.published_total, n_boot, level, seed, cell_no)))
+    return Table(manifest, rows, tuple(overrides), metric, level)
+
+
+def _averages(manifest, set_cells: list[list[Cell]], published, n_boot, level, seed, cell_no) -> list[Cell]:
+    """One average cell per column over the given set rows: the mean of the set values (each set
+    weighs the same, as in the paper), its interval resampling meshes within every set."""
+    out = []
+    for j, column in enumerate(manifest.columns):
+        members = [cells[j] for cells in set_cells]
+        cell = Cell(column, published[j], members=members if column.overrides is not None else [],
+                    budget=members[0].budget)
+        if cell.status == "ok":
+            cell.value = float(np.mean([m.value for m in members]))
+            cell.ci = bootstrap_ci([m.accs for m in members], n_boot, level, np.random.default_rng([seed, cell_no + j + 1]))
+        out.append(cell)
+    return out

@@ -1,0 +1,204 @@
+"""A table in every format the report writes: Markdown, LaTeX, HTML, CSV, and a PNG of reproduced
+vs published per set. Numbers are accuracies in %; a cell without a complete set of runs is
+printed as what it lacks, never as a number."""
+
+from __future__ import annotations
+
+import csv
+import html
+import io
+from pathlib import Path
+
+import numpy as np
+
+from meshseg.report.table import Cell, Table
+
+FILES = ("table.md", "table.tex", "table.html", "table.csv", "comparison.png")
+
+
+def _num(v: float | None, signed: bool = False) -> str:
+    return "—" if v is None else f"{v:+.2f}" if signed else f"{v:.2f}"
+
+
+def _ours(cell: Cell) -> str:
+    """The reproduced part of a cell as plain text."""
+    s = cell.status
+    if s == "published":
+        return "—"
+    if s != "ok":
+        return f"{s}: {cell.why()}"
+    return f"{cell.value:.2f} [{cell.ci[0]:.2f}, {cell.ci[1]:.2f}]"
+
+
+def header_lines(table: Table) -> list[str]:
+    m = table.manifest
+    lines = [m.title, f"Published: {m.source}" if m.source else "",
+             f"Budget: {', '.join(table.budgets) or '—'}; cell = mean accuracy (%) over all test meshes of all folds "
+             f"({'after' if table.metric == 'acc' else 'before'} refinement), [{100 * table.level:.0f} % bootstrap interval over test meshes]; "
+             f"Δ = reproduced − published",
+             f"Overrides: {' '.join(table.overrides)}" if table.overrides else "", m.note]
+    return [line for line in lines if line]
+
+
+def _md_cell(cell: Cell) -> str:
+    if cell.published is None:
+        return _ours(cell)
+    return f"{_ours(cell)} / {cell.published:.2f}" + ("" if cell.delta is None else f" ({cell.delta:+.2f})")
+
+
+def markdown(table: Table) -> str:
+    """One column per method; each cell `reproduced [CI] / published (Δ)` (the parts that exist)."""
+    cols = table.columns
+    out = [f"**{header_lines(table)[0]}**", "", *[f"{line}  " for line in header_lines(table)[1:]], "",
+           "| Set | " + " | ".join(c.label for c in cols) + " |", "|---|" + "---|" * len(cols)]
+    for row in table.rows:
+        label = row.label if row.kind == "set" else f"**{row.label}**"
+        out.append(f"| {label} | " + " | ".join(_md_cell(c) for c in row.cells) + " |")
+    return "\n".join(out) + "\n"
+
+
+def csv_text(table: Table) -> str:
+    """Long form, one line per cell (averages included): everything the other formats show."""
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    w.writerow(["group", "row", "kind", "column", "label", "status", "reproduced", "ci_low", "ci_high", "published",
+                "delta", "n_meshes", "folds", "folds_missing", "budget", "why", "category", "run_ids"])
+    f = lambda v: "" if v is None else f"{v:.4f}"
+    for row in table.rows:
+        for c in row.cells:
+            w.writerow([row.group, row.label, row.kind, c.column.key, c.column.label, c.status, f(c.value),
+                        f(c.ci and c.ci[0]), f(c.ci and c.ci[1]), f(c.published), f(c.delta), c.n_meshes,
+                        c.folds, " ".join(map(str, c.missing)), c.budget or "",
+                        c.why() if c.status in ("incomplete", "unavailable") else "", c.category or "", " ".join(c.run_ids)])
+    return buf.getvalue()
+
+
+def _tex(s: str) -> str:
+    for a, b in (("\\", r"\textbackslash{}"), ("&", r"\&"), ("%", r"\%"), ("_", r"\_"), ("#", r"\#"), ("$", r"\$")):
+        s = s.replace(a, b)
+    return s
+
+
+def latex(table: Table) -> str:
+    """booktabs tabular: per method three columns, ours (with its interval), published, Δ."""
+    cols = table.columns
+    lines = ["% " + line for line in header_lines(table)]
+    lines += [r"\begin{tabular}{l" + "rrr" * len(cols) + "}", r"\toprule",
+              " & " + " & ".join(rf"\multicolumn{{3}}{{c}}{{{_tex(c.label)}}}" for c in cols) + r" \\",
+              "".join(rf"\cmidrule(lr){{{2 + 3 * i}-{4 + 3 * i}}}" for i in range(len(cols))),
+              "Set & " + " & ".join(["ours", "paper", r"$\Delta$"] * len(cols)) + r" \\", r"\midrule"]
+    for row in table.rows:
+        if row.kind != "set":
+            lines.append(r"\midrule")
+        parts = []
+        for c in row.cells:
+            if c.status == "ok":
+                ours = rf"{c.value:.2f}\,{{\scriptsize[{c.ci[0]:.2f}, {c.ci[1]:.2f}]}}"
+            elif c.status == "published":
+                ours = "--"
+            else:
+                ours = rf"\textit{{{c.status}: {_tex(c.why())}}}"
+            parts += [ours, "--" if c.published is None else f"{c.published:.2f}", "--" if c.delta is None else f"{c.delta:+.2f}"]
+        label = _tex(row.label) if row.kind == "set" else rf"\textbf{{{_tex(row.label)}}}"
+        lines.append(f"{label} & " + " & ".join(parts) + r" \\")
+    lines += [r"\bottomrule", r"\end{tabular}"]
+    return "\n".join(lines) + "\n"
+
+
+def html_text(table: Table) -> str:
+    """A standalone page: the same sub-columns as the LaTeX, incomplete cells in italics."""
+    e = html.escape
+    cols = table.columns
+    head = "".join(f'<th colspan="3">{e(c.label)}</th>' for c in cols)
+    sub = "".join("<th>ours</th><th>paper</th><th>Δ</th>" for _ in cols)
+    body = []
+    for row in table.rows:
+        tds = []
+        for c in row.cells:
+            if c.status == "ok":
+                ours = f"{c.value:.2f} <small>[{c.ci[0]:.2f}, {c.ci[1]:.2f}]</small>"
+            elif c.status == "published":
+                ours = "—"
+            else:
+                ours = f'<i class="{c.status}">{e(c.status)}: {e(c.why())}</i>'
+            tds.append(f"<td>{ours}</td><td>{_num(c.published)}</td><td>{_num(c.delta, True)}</td>")
+        cls = "" if row.kind == "set" else ' class="average"'
+        body.append(f"<tr{cls}><th>{e(row.label)}</th>{''.join(tds)}</tr>")
+    notes = "".join(f"<p>{e(line)}</p>" for line in header_lines(table)[1:])
+    return (f"<!doctype html>\n<html><head><meta charset=\"utf-8\"><title>{e(table.manifest.name)}</title>\n"
+            "<style>table{border-collapse:collapse}td,th{border:1px solid #ccc;padding:2px 6px;text-align:right}"
+            "tr.average{font-weight:bold}i{color:#a00}</style></head><body>\n"
+            f"<h2>{e(table.manifest.title)}</h2>{notes}\n<table><tr><th rowspan=\"2\">Set</th>{head}</tr><tr>{sub}</tr>\n"
+            + "\n".join(body) + "\n</table></body></html>\n")
+
+
+def comparison_figure(table: Table):
+    """Left: reproduced vs published for every complete cell with a published number, y = x dashed,
+    intervals as error bars. Right: per set, reproduced bars per column with published ticks."""
+    from matplotlib.figure import Figure
+
+    cols = [c for c in table.columns if c.overrides is not None]
+    sets = [r for r in table.rows if r.kind == "set"]
+    colors = {c.key: f"C{i % 10}" for i, c in enumerate(cols)}
+    fig = Figure(figsize=(6 + 0.45 * len(sets) * max(1, len(cols)) ** 0.5, 5), layout="constrained")
+    ax, bx = fig.subplots(1, 2, width_ratios=[1, 2])
+    lo, hi = 100.0, 0.0
+    for c in cols:
+        pts = [(x.published, x.value, x.ci) for r in sets for x in r.cells
+               if x.column.key == c.key and x.status == "ok" and x.published is not None]
+        if pts:
+            p, v, ci = map(np.array, zip(*pts))
+            ax.errorbar(p, v, yerr=np.abs(ci.T - v), fmt="o", ms=4, color=colors[c.key], label=c.label, capsize=2)
+            lo, hi = min(lo, p.min(), ci.min()), max(hi, p.max(), ci.max())
+    if hi > lo:
+        pad = 0.05 * (hi - lo) + 0.2
+        ax.plot([lo - pad, hi + pad], [lo - pad, hi + pad], "k--", lw=0.8, label="y = x")
+        ax.legend(fontsize=7)
+    else:
+        ax.text(0.5, 0.5, "no cell has both a reproduced\nand a published number", ha="center", va="center",
+                transform=ax.transAxes, fontsize=8)
+    ax.set(xlabel="published accuracy (%)", ylabel="reproduced accuracy (%)", title="reproduced vs published")
+    width = 0.8 / max(1, len(cols))
+    x = np.arange(len(sets))
+    for i, c in enumerate(cols):
+        cells = [next(x_ for x_ in r.cells if x_.column.key == c.key) for r in sets]
+        vals = np.array([np.nan if x_.value is None else x_.value for x_ in cells])
+        pub = np.array([np.nan if x_.published is None else x_.published for x_ in cells])
+        pos = x - 0.4 + width * (i + 0.5)
+        bx.bar(pos, vals, width, color=colors[c.key], label=c.label)
+        bx.plot(pos, pub, "_", color="k", ms=max(4, 40 * width), mew=1.5)
+    finite = [v for r in sets for c in r.cells for v in (c.value, c.published) if v is not None]
+    if finite:
+        bx.set_ylim(max(0, min(finite) - 3), min(100, max(finite) + 1))
+    bx.set_xticks(x, [r.label for r in sets], rotation=60, ha="right", fontsize=7)
+    bx.set(ylabel="accuracy (%)", title="per set: bars reproduced, black ticks published (missing bar: no complete cell)")
+    bx.title.set_fontsize(8)
+    if cols:
+        bx.legend(fontsize=7, ncols=min(4, len(cols)))
+    fig.suptitle(f"{table.manifest.name} (budget {', '.join(table.budgets) or '—'})", fontsize=9)
+    return fig
+
+
+def png_bytes(fig, dpi: int = 110) -> bytes:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    buf = io.BytesIO()
+    FigureCanvasAgg(fig)  # headless, without touching pyplot's global backend
+    fig.savefig(buf, format="png", dpi=dpi)
+    return buf.getvalue()
+
+
+def write_report(table: Table, out_dir: str | Path) -> list[Path]:
+    """Write every format into out_dir (created); each file is written whole or not at all."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    contents = {"table.md": markdown(table), "table.tex": latex(table), "table.html": html_text(table),
+                "table.csv": csv_text(table), "comparison.png": png_bytes(comparison_figure(table))}
+    paths = []
+    for name in FILES:
+        path, tmp = out / name, out / f".{name}.tmp"
+        data = contents[name]
+        tmp.write_bytes(data if isinstance(data, bytes) else data.encode())
+        tmp.replace(path)
+        paths.append(path)
+    return paths
