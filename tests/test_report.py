@@ -1,0 +1,249 @@
+"""meshseg.report and meshseg.reproduce: the statistics on hand-computed cases, manifest errors, and
+on a store made by a budget=smoke sweep (conftest.smoke_store): every format, numbers equal to the
+runs' own per-mesh tables, a deleted fold shown as incomplete and refilled by reproduce, the report
+logged as a run; and the published numbers the report prints for every paper table, against the LaTeX."""
+
+import csv
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from mlflow import MlflowClient
+
+from conftest import PSB_ARCHIVE, REPO, SMOKE, require, smoke_env
+from meshseg.report import ManifestError, load_manifest, report, split_overrides
+from meshseg.report.manifest import Column
+from meshseg.report.table import Cell, _averages, bootstrap_ci
+from meshseg.report.write import FILES
+from test_manifests import PAPER_TABLES, paper_tex, parse_tabulars
+
+SYNTH = REPO / "experiments/synthetic.yaml"
+
+
+def cli(module: str, *args, env: dict) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", module, *args], cwd=REPO, env=env, capture_output=True, text=True, timeout=900)
+
+
+def read_csv(path: Path) -> list[dict]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def cell(rows: list[dict], row: str, column: str) -> dict:
+    (found,) = [r for r in rows if r["row"] == row and r["column"] == column]
+    return found
+
+
+def runs_of(store: Path, experiment: str = "meshseg", filter_string: str = "") -> list:
+    client = MlflowClient(f"sqlite:///{store}/mlflow.db")
+    exp = client.get_experiment_by_name(experiment)
+    return client.search_runs([exp.experiment_id], filter_string) if exp else []
+
+
+# --- statistics -----------------------------------------------------------------------------------
+
+COL = Column("a", "A", ("model=cnn1d",))
+
+
+def test_bootstrap_of_a_constant_is_that_constant():
+    assert bootstrap_ci([np.full(7, 93.0)], 500, 0.95, np.random.default_rng(0)) == pytest.approx((93.0, 93.0))
+
+
+def test_bootstrap_interval_brackets_the_mean_and_narrows_with_more_meshes():
+    few = np.array([90.0, 100.0] * 4)
+    many = np.array([90.0, 100.0] * 100)
+    lo, hi = bootstrap_ci([few], 4000, 0.95, np.random.default_rng(1))
+    lo2, hi2 = bootstrap_ci([many], 4000, 0.95, np.random.default_rng(1))
+    lo3, hi3 = bootstrap_ci([few], 4000, 0.5, np.random.default_rng(1))
+    assert lo < 95 < hi and lo2 < 95 < hi2
+    assert hi2 - lo2 < (hi - lo) / 3     # the standard error shrinks like 1/sqrt(n): 8 -> 200 meshes
+    assert hi3 - lo3 < hi - lo
+    assert 90 <= lo and hi <= 100
+
+
+def test_bootstrap_of_sets_resamples_each_set_and_weighs_sets_equally():
+    # set means 100 and 50 -> 75 exactly, whatever is resampled (the pooled mean would be 87.5)
+    assert bootstrap_ci([np.full(3, 100.0), np.full(1, 50.0)], 300, 0.95, np.random.default_rng(0)) == pytest.approx((75, 75))
+
+
+def test_average_row_is_the_mean_of_set_values_and_needs_every_set():
+    a = Cell(COL, None, accs=np.array([100.0, 100.0, 100.0, 100.0]), folds=2, value=100.0)
+    b = Cell(COL, None, accs=np.array([50.0]), folds=1, value=50.0)
+    manifest = type("M", (), {"columns": (COL,)})()
+    (avg,) = _averages(manifest, [[a], [b]], (80.0,), 200, 0.95, 0, 0)
+    assert avg.status == "ok" and avg.value == pytest.approx(75.0) and avg.delta == pytest.approx(-5.0)
+    assert avg.n_meshes == 5
+    b2 = Cell(COL, None, folds=5, missing=(1, 3))
+    assert b2.status == "incomplete" and b2.why() == "2 of 5 folds missing" and b2.value is None
+    (avg2,) = _averages(manifest, [[a], [b2]], (80.0,), 200, 0.95, 0, 0)
+    assert avg2.status == "incomplete" and avg2.value is None and avg2.why() == "1 of 2 sets not complete"
+    assert Cell(Column("p", "P", None), 93.0).status == "published"
+
+
+# --- manifests and settings -----------------------------------------------------------------------
+
+@pytest.mark.parametrize("edit, problem", [
+    (lambda d: d.update(name="other"), "differs from the file name"),
+    (lambda d: d["groups"][0]["sets"][0].update(published=[1.0]), "expected a list of 3 numbers"),
+    (lambda d: d["columns"][0].update(overrides=["model cnn1d"]), "key=value"),
+    (lambda d: d["groups"][0]["sets"][1].update(published=["x", None, None]), "'x' is not a number"),
+    (lambda d: d.pop("columns"), "missing key"),
+])
+def test_a_bad_manifest_names_the_file_and_the_problem(tmp_path, edit, problem):
+    doc = yaml.safe_load(SYNTH.read_text())
+    edit(doc)
+    path = tmp_path / "synthetic.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    with pytest.raises(ManifestError, match=problem) as e:
+        load_manifest(path)
+    assert str(path) in str(e.value)
+    with pytest.raises(ManifestError, match="no such manifest file"):
+        load_manifest(tmp_path / "absent.yaml")
+
+
+def test_report_settings_are_split_from_run_overrides():
+    settings, run = split_overrides(["budget=cpu", "report.sets=[Teddy]", "report.n_boot=10", "tracking.uri=x"])
+    assert list(settings.sets) == ["Teddy"] and settings.n_boot == 10 and run == ["budget=cpu", "tracking.uri=x"]
+    with pytest.raises(ValueError, match="unknown report setting 'nope'"):
+        split_overrides(["report.nope=1"])
+
+
+# --- on the smoke store ---------------------------------------------------------------------------
+
+def mesh_mean(store: Path, tags: dict) -> float:
+    """A cell computed by hand: the runs with these tags, their per_mesh.csv rows, mean of `acc` in %."""
+    client = MlflowClient(f"sqlite:///{store}/mlflow.db")
+    filt = " and ".join(f"tags.{k} = '{v}'" for k, v in tags.items()) + " and attributes.status = 'FINISHED'"
+    accs = []
+    for run in runs_of(store, filter_string=filt):
+        path = client.download_artifacts(run.info.run_id, "per_mesh.csv")
+        accs += [100 * float(r["acc"]) for r in read_csv(Path(path))]
+    assert len(accs) == 5, tags    # every mesh of the set tested exactly once over the 2 folds
+    return float(np.mean(accs))
+
+
+def test_report_writes_every_format_from_the_runs_and_logs_itself(smoke_store, tmp_path, cache_dir):
+    env = smoke_env(smoke_store.parent, cache_dir)
+    r = cli("meshseg.report", str(SYNTH), *SMOKE, f"report.out_dir={tmp_path}", env=env)
+    assert r.returncode == 0, r.stderr[-3000:]
+    out = tmp_path / "synthetic"
+    assert all((out / f).stat().st_size > 0 for f in FILES)
+    rows = read_csv(out / "table.csv")
+    columns = {"3B": {"model": "cnn1d", "branches": "3"}, "1B": {"model": "cnn1d", "branches": "1"}, "rf": {"model": "rf"}}
+    md = (out / "table.md").read_text()
+    for key, tags in columns.items():
+        values = []
+        for name, category in (("Table", "table"), ("Cup", "cup"), ("Figure", "figure")):
+            c = cell(rows, name, key)
+            assert c["status"] == "ok" and c["n_meshes"] == "5" and c["budget"] == "smoke"
+            value = float(c["reproduced"])
+            assert value == pytest.approx(mesh_mean(smoke_store, {**tags, "category": category}), abs=1e-3)
+            assert float(c["ci_low"]) <= value <= float(c["ci_high"])
+            assert f"{value:.2f} [" in md
+            values.append(value)
+        avg = cell(rows, "Average", key)
+        assert avg["kind"] == "average" and float(avg["reproduced"]) == pytest.approx(np.mean(values), abs=1e-3)
+    tex, html = (out / "table.tex").read_text(), (out / "table.html").read_text()
+    assert r"\begin{tabular}" in tex and r"\toprule" in tex and tex.count(r"\\") == 1 + 1 + 4   # 2 header + 4 rows
+    assert html.count("<tr") == 2 + 4 and "<table>" in html
+    import matplotlib.image
+
+    png = matplotlib.image.imread(out / "comparison.png")
+    assert png.ndim == 3 and png.shape[0] > 300 and png.shape[1] > png.shape[0] and png[..., :3].std() > 0.05
+    (logged,) = runs_of(smoke_store, "meshseg-reports", "tags.report = 'synthetic'")
+    assert logged.info.status == "FINISHED" and logged.info.run_id in r.stdout
+    client = MlflowClient(f"sqlite:///{smoke_store}/mlflow.db")
+    assert {a.path for a in client.list_artifacts(logged.info.run_id)} == set(FILES)
+    assert logged.data.metrics["Average.3B"] == pytest.approx(float(cell(rows, "Average", "3B")["reproduced"]), abs=1e-3)
+    assert logged.data.metrics["cells_ok"] == 12
+
+
+def test_published_numbers_give_deltas(smoke_store, tmp_path, cache_dir, monkeypatch):
+    doc = yaml.safe_load(SYNTH.read_text())
+    for s, pub in zip(doc["groups"][0]["sets"], ([90.0, 80.0, None], [91.0, None, 70.5], [50.0, 60.0, 70.0])):
+        s["published"] = pub
+    doc["groups"][0]["published_average"] = [77.0, None, None]
+    path = tmp_path / "synthetic.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    for k, v in smoke_env(smoke_store.parent, cache_dir).items():
+        monkeypatch.setenv(k, v)
+    table, files, run_id = report(path, [*SMOKE, f"report.out_dir={tmp_path}", "report.log=false"])
+    assert run_id is None
+    rows = read_csv(tmp_path / "synthetic/table.csv")
+    for row, key, pub in (("Table", "3B", 90.0), ("Cup", "rf", 70.5), ("Figure", "1B", 60.0), ("Average", "3B", 77.0)):
+        c = cell(rows, row, key)
+        assert float(c["published"]) == pub
+        assert float(c["delta"]) == pytest.approx(float(c["reproduced"]) - pub, abs=2e-4)
+    assert cell(rows, "Cup", "1B")["published"] == "" and cell(rows, "Cup", "1B")["delta"] == ""
+    md = (tmp_path / "synthetic/table.md").read_text()
+    table_line = next(line for line in md.splitlines() if line.startswith("| Table |"))
+    assert " / 90.00 (" in table_line and " / 80.00 (" in table_line
+    assert "/ 50.00 (" in next(line for line in md.splitlines() if line.startswith("| Figure |"))
+
+
+def test_a_deleted_fold_is_incomplete_and_reproduce_launches_only_it(smoke_store, tmp_path, cache_dir):
+    """On a copy of the store: delete rf/cup fold 1; the cell and the rf average have no number;
+    reproduce (dry run first) launches exactly that run, which gives back the same number."""
+    (tmp_path / "mlruns").mkdir()
+    shutil.copy(smoke_store / "mlflow.db", tmp_path / "mlruns/mlflow.db")   # artifact paths are absolute
+    env = smoke_env(tmp_path, cache_dir)
+    args = [str(SYNTH), *SMOKE, f"report.out_dir={tmp_path / 'reports'}"]
+    before = float(cell(read_csv(smoke_report(tmp_path, env, args)), "Cup", "rf")["reproduced"])
+    (victim,) = runs_of(tmp_path / "mlruns", filter_string="tags.model = 'rf' and tags.category = 'cup' and tags.fold = '1'")
+    MlflowClient(f"sqlite:///{tmp_path}/mlruns/mlflow.db").delete_run(victim.info.run_id)
+
+    rows = read_csv(smoke_report(tmp_path, env, args))
+    c, avg = cell(rows, "Cup", "rf"), cell(rows, "Average", "rf")
+    assert (c["status"], c["reproduced"], c["why"], c["folds_missing"]) == ("incomplete", "", "1 of 2 folds missing", "1")
+    assert (avg["status"], avg["reproduced"], avg["why"]) == ("incomplete", "", "1 of 3 sets not complete")
+    assert cell(rows, "Cup", "3B")["status"] == "ok"
+    md = (tmp_path / "reports/synthetic/table.md").read_text()
+    cup = next(line for line in md.splitlines() if line.startswith("| Cup |"))
+    assert cup.endswith("| incomplete: 1 of 2 folds missing |")
+
+    n = len(runs_of(tmp_path / "mlruns", filter_string="attributes.status = 'FINISHED'"))
+    dry = cli("meshseg.reproduce", *args, "report.dry_run=true", env=env)
+    assert dry.returncode == 0 and "1 cell(s) lack 1 fold run(s)" in dry.stderr and "category=cup fold=1" in dry.stderr
+    assert len(runs_of(tmp_path / "mlruns", filter_string="attributes.status = 'FINISHED'")) == n
+    r = cli("meshseg.reproduce", *args, env=env)
+    assert r.returncode == 0, r.stderr[-3000:]
+    finished = runs_of(tmp_path / "mlruns", filter_string="attributes.status = 'FINISHED'")
+    assert len(finished) == n + 1
+    new = [f for f in finished if f.info.run_id not in {x.info.run_id for x in runs_of(smoke_store)}]
+    assert [(x.data.tags["model"], x.data.tags["category"], x.data.tags["fold"]) for x in new] == [("rf", "cup", "1")]
+    c = cell(read_csv(tmp_path / "reports/synthetic/table.csv"), "Cup", "rf")
+    assert c["status"] == "ok" and float(c["reproduced"]) == pytest.approx(before, abs=1e-4)   # same seed, same run
+
+
+def smoke_report(tmp_path: Path, env: dict, args: list) -> Path:
+    r = cli("meshseg.report", *args, "report.log=false", env=env)
+    assert r.returncode == 0, r.stderr[-3000:]
+    return tmp_path / "reports/synthetic/table.csv"
+
+
+# --- the paper's tables ---------------------------------------------------------------------------
+
+@pytest.mark.parametrize("stem", sorted(PAPER_TABLES))
+def test_the_report_prints_the_papers_numbers(stem, tmp_path, cache_dir, monkeypatch):
+    """From an empty store: every published cell the report writes equals the LaTeX, row for row,
+    and no cell has a reproduced number."""
+    require(PSB_ARCHIVE)
+    monkeypatch.setenv("MESHSEG_CACHE_DIR", str(cache_dir))
+    monkeypatch.setenv("MESHSEG_MLFLOW_DIR", str(tmp_path / "mlruns"))
+    report(REPO / f"experiments/{stem}.yaml", [f"report.out_dir={tmp_path}", "report.log=false", "report.n_boot=10"])
+    rows = read_csv(tmp_path / stem / "table.csv")
+    printed: dict[str, list] = {}
+    for r in rows:
+        printed.setdefault((r["group"], r["row"]), []).append(None if r["published"] == "" else float(r["published"]))
+    paper = [row for t in parse_tabulars(paper_tex(), PAPER_TABLES[stem]) for row in t]
+    extra = 1 if stem == "table4_fixed_splits" else 0          # Table 4's "Testing Meshes" column
+    assert [(k[1], v) for k, v in printed.items()] == [(name, values[extra:]) for name, values in paper]
+    assert {r["status"] for r in rows} <= {"incomplete", "unavailable", "published"} and not any(r["reproduced"] for r in rows)
+    md = (tmp_path / stem / "table.md").read_text()
+    name, values = paper[0]
+    first = next(line for line in md.splitlines() if line.startswith(f"| {name} |"))
+    assert all(f"/ {v:.2f}" in first or f"| {v:.2f}" in first or f"{v:.2f} |" in first for v in values[extra:] if v is not None)
