@@ -23,6 +23,7 @@ demo: install
 	$(BIN)/python -m meshseg.run model=cnn1d branches=3 split=5fold -m
 	@echo "Runs are in the MLflow store mlruns/mlflow.db. Browse them with:"
 	@echo "  $(BIN)/mlflow ui --backend-store-uri sqlite:///mlruns/mlflow.db   # then open http://127.0.0.1:5000"
+	@echo "Their table (reports/synthetic/): $(BIN)/python -m meshseg.report experiments/synthetic.yaml"
 
 test: install
 	$(BIN)/python -m pytest
