@@ -1,6 +1,6 @@
 """Pictures for run tracking: a mesh coloured by predicted vs ground-truth labels, and a confusion matrix.
 
-Plain numpy arrays in, PNG bytes out. Only matplotlib's object API is used (Figure + FigureCanvasAgg, never
+Plain numpy arrays in, PNG bytes out (upstream of tracking, which logs them). Only matplotlib's object API is used (Figure + FigureCanvasAgg, never
 pyplot): thread-safe, headless, and the process-wide backend is left alone. Meshes are drawn by a small
 vectorised z-buffer rasteriser, so hidden surfaces are exact and 20k faces take milliseconds.
 """
@@ -16,6 +16,9 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 from matplotlib.ticker import PercentFormatter
+
+from meshseg.data.mesh import face_areas
+from meshseg.metrics import area_weighted_accuracy
 
 UNLABELLED = np.array([0.6, 0.6, 0.6])
 """Colour of faces whose label is outside [0, n_labels)."""
@@ -128,10 +131,7 @@ def render_labels(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, n
 
 def _area_accuracy(vertices: np.ndarray, faces: np.ndarray, pred: np.ndarray, gt: np.ndarray) -> float:
     """Fraction of surface area whose predicted label equals the ground truth (the paper's accuracy)."""
-    v, f = np.asarray(vertices, np.float64), np.asarray(faces, np.int64)
-    areas = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
-    total = areas.sum()
-    return float(areas[np.asarray(pred) == np.asarray(gt)].sum() / total) if total > 0 else float("nan")
+    return area_weighted_accuracy(pred, gt, face_areas(np.asarray(vertices, np.float64), np.asarray(faces, np.int64)))
 
 
 def _accuracy_title(title: str, accuracy: float) -> str:

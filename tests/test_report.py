@@ -110,6 +110,9 @@ def test_report_settings_are_split_from_run_overrides():
     assert list(settings.sets) == ["Teddy"] and settings.n_boot == 10 and run == ["budget=cpu", "tracking.uri=x"]
     with pytest.raises(ValueError, match="unknown report setting 'nope'"):
         split_overrides(["report.nope=1"])
+    with pytest.raises(ValueError, match="report.metric=f1 is not allowed"):
+        split_overrides(["report.metric=f1"])
+    assert split_overrides(["report.metric=acc_raw"])[0].metric == "acc_raw"
 
 
 # --- on the smoke store ---------------------------------------------------------------------------

@@ -35,6 +35,8 @@ def split_overrides(args) -> tuple[DictConfig, list[str]]:
             OmegaConf.update(settings, key, OmegaConf.create(f"v: {value}").v if value else None)
         else:
             run_overrides.append(a)
+    if settings.metric not in ("acc", "acc_raw"):
+        raise ValueError(f"report.metric={settings.metric} is not allowed: choose acc (after refinement) or acc_raw")
     return settings, run_overrides
 
 

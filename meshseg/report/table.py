@@ -141,10 +141,13 @@ class _Runs:
 
     def mesh_accuracies(self, run) -> list[float]:
         """The run's per-test-mesh accuracies (%) from its per_mesh.csv artifact."""
-        with tempfile.TemporaryDirectory() as tmp:
-            path = self.client.download_artifacts(run.info.run_id, "per_mesh.csv", tmp)
-            with open(path, newline="") as f:
-                return [100.0 * float(row[self.metric]) for row in csv.DictReader(f)]
+        try:
+            with tempfile.TemporaryDirectory() as tmp:
+                path = self.client.download_artifacts(run.info.run_id, "per_mesh.csv", tmp)
+                with open(path, newline="") as f:
+                    return [100.0 * float(row[self.metric]) for row in csv.DictReader(f)]
+        except Exception as e:  # a FINISHED run without a readable table is damage, not a missing fold
+            raise ValueError(f"run {run.info.run_id} ({run.info.run_name}): cannot read {self.metric} from per_mesh.csv: {e}") from None
 
 
 def collect(manifest: Manifest, overrides=(), *, metric: str = "acc", n_boot: int = 2000, level: float = 0.95,
@@ -180,7 +183,8 @@ def collect(manifest: Manifest, overrides=(), *, metric: str = "acc", n_boot: in
                 try:
                     cfg = compose("run", overrides=over)
                 except HydraException as e:
-                    raise ManifestError(manifest.path, f"group {group.name}, column {column.key}: {e}") from None
+                    why = str(e).split("\nConfig search path")[0].strip()   # Hydra appends its search path
+                    raise ManifestError(manifest.path, f"group {group.name}, column {column.key}: {why}") from None
                 key = (cfg.tracking.uri, cfg.tracking.experiment)
                 if key not in stores:
                     stores[key] = _Runs(*key, metric)
