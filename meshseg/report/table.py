@@ -83,6 +83,7 @@ class Table:
     overrides: tuple[str, ...]
     metric: str
     level: float
+    budget_text: dict[str, str] = field(default_factory=dict)   # budget name -> what it trains on
 
     @property
     def budgets(self) -> list[str]:
@@ -169,6 +170,7 @@ def collect(manifest: Manifest, overrides=(), *, metric: str = "acc", n_boot: in
     stores: dict[tuple[str, str], _Runs] = {}
     datasets: dict[str, object] = {}
     rows: list[Row] = []
+    budget_text: dict[str, str] = {}
     cell_no = 0
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         for group in manifest.groups:
@@ -185,6 +187,8 @@ def collect(manifest: Manifest, overrides=(), *, metric: str = "acc", n_boot: in
                 except HydraException as e:
                     why = str(e).split("\nConfig search path")[0].strip()   # Hydra appends its search path
                     raise ManifestError(manifest.path, f"group {group.name}, column {column.key}: {why}") from None
+                b = cfg.budget
+                budget_text[b.name] = f"{b.faces_per_mesh or 'every'} training faces per mesh, {b.epochs} epochs"
                 key = (cfg.tracking.uri, cfg.tracking.experiment)
                 if key not in stores:
                     stores[key] = _Runs(*key, metric)
@@ -235,7 +239,7 @@ def collect(manifest: Manifest, overrides=(), *, metric: str = "acc", n_boot: in
     if manifest.total and keep is None:
         every = [r.cells for r in rows if r.kind == "set"]
         rows.append(Row(manifest.total, "total", "", _averages(manifest, every, manifest.published_total, n_boot, level, seed, cell_no)))
-    return Table(manifest, rows, tuple(overrides), metric, level)
+    return Table(manifest, rows, tuple(overrides), metric, level, budget_text)
 
 
 def _averages(manifest, set_cells: list[list[Cell]], published, n_boot, level, seed, cell_no) -> list[Cell]:

@@ -32,8 +32,9 @@ def _ours(cell: Cell) -> str:
 
 def header_lines(table: Table) -> list[str]:
     m = table.manifest
+    budgets = "; ".join(f"{b} ({table.budget_text.get(b, '?')})" for b in table.budgets)
     lines = [m.title, f"Published: {m.source}" if m.source else "",
-             f"Budget: {', '.join(table.budgets) or '—'}; cell = mean accuracy (%) over all test meshes of all folds "
+             f"Budget: {budgets or '—'}; cell = mean accuracy (%) over all test meshes of all folds "
              f"({'after' if table.metric == 'acc' else 'before'} refinement), [{100 * table.level:.0f} % bootstrap interval over test meshes]; "
              f"Δ = reproduced − published",
              f"Overrides: {' '.join(table.overrides)}" if table.overrides else "", m.note]
