@@ -135,7 +135,9 @@ def test_one_run_follows_the_tracking_contract_and_reruns_skip(store):
     lrs = [h.value for h in client.get_metric_history(run.info.run_id, "lr")]
     assert np.allclose(lrs, [1e-2, 1e-4])
     local = Path(client.download_artifacts(run.info.run_id, ""))
-    assert sorted(p.name for p in local.iterdir()) == ["config.yaml", "per_mesh.csv", "predictions.npz"]
+    assert sorted(p.name for p in local.iterdir()) == ["config.yaml", "confusion.png", "per_mesh.csv", "predictions.npz", "renders"]
+    assert [p.name for p in (local / "renders").iterdir()] == ["mesh_1.png"]   # the fold's one test mesh
+    assert (local / "confusion.png").read_bytes()[:4] == b"\x89PNG"
     table = (local / "per_mesh.csv").read_text().splitlines()
     assert table[0] == "mesh,faces,area,acc_raw,acc" and table[1].startswith("1,")  # 5fold: fold 1 tests mesh 1
     assert np.isclose(float(table[1].split(",")[4]), m["test_acc"])
