@@ -1,11 +1,9 @@
 """Both notebooks execute headlessly against the smoke store, with the tracking URI (and manifest)
 passed as parameters through the environment."""
 
-import os
 import re
 
 import nbformat
-import pytest
 import yaml
 from nbclient import NotebookClient
 

@@ -7,7 +7,6 @@
 from __future__ import annotations
 
 import hashlib
-import logging
 import re
 from pathlib import Path
 
@@ -19,8 +18,6 @@ from meshseg.report.table import Table, collect
 from meshseg.report.write import write_report
 
 __all__ = ["ManifestError", "Manifest", "Table", "load_manifest", "collect", "write_report", "split_overrides", "report"]
-
-log = logging.getLogger(__name__)
 
 
 def split_overrides(args) -> tuple[DictConfig, list[str]]:

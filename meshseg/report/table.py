@@ -10,18 +10,14 @@ not all FINISHED is incomplete and has no value. An average row is the mean of i
 from __future__ import annotations
 
 import csv
-import logging
 import os
 import tempfile
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 from omegaconf import OmegaConf
 
 from meshseg.report.manifest import Column, Manifest, ManifestError
-
-log = logging.getLogger(__name__)
 
 
 @dataclass
