@@ -149,16 +149,17 @@ def comparison_figure(table: Table):
                if x.column.key == c.key and x.status == "ok" and x.published is not None]
         if pts:
             p, v, ci = map(np.array, zip(*pts))
-            ax.errorbar(p, v, yerr=np.abs(ci.T - v), fmt="o", ms=4, color=colors[c.key], label=c.label, capsize=2)
+            ax.errorbar(p, v, yerr=np.abs(ci.T - v), fmt="o", ms=4, color=colors[c.key], capsize=2)
             lo, hi = min(lo, p.min(), ci.min()), max(hi, p.max(), ci.max())
     if hi > lo:
         pad = 0.05 * (hi - lo) + 0.2
         ax.plot([lo - pad, hi + pad], [lo - pad, hi + pad], "k--", lw=0.8, label="y = x")
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=7, loc="upper left")   # the columns' colours: the figure's legend
     else:
         ax.text(0.5, 0.5, "no cell has both a reproduced\nand a published number", ha="center", va="center",
                 transform=ax.transAxes, fontsize=8)
     ax.set(xlabel="published accuracy (%)", ylabel="reproduced accuracy (%)", title="reproduced vs published")
+    ax.title.set_fontsize(9)
     width = 0.8 / max(1, len(cols))
     x = np.arange(len(sets))
     for i, c in enumerate(cols):
@@ -172,10 +173,11 @@ def comparison_figure(table: Table):
     if finite:
         bx.set_ylim(max(0, min(finite) - 3), min(100, max(finite) + 1))
     bx.set_xticks(x, [r.label for r in sets], rotation=60, ha="right", fontsize=7)
-    bx.set(ylabel="accuracy (%)", title="per set: bars reproduced, black ticks published (missing bar: no complete cell)")
-    bx.title.set_fontsize(8)
-    if cols:
-        bx.legend(fontsize=7, ncols=min(4, len(cols)))
+    bx.set(ylabel="accuracy (%)", title="per set: bars reproduced, black ticks published")
+    bx.title.set_fontsize(9)
+    if cols:   # below both panels, so that it hides no bar
+        handles, labels = bx.get_legend_handles_labels()
+        fig.legend(handles, labels, loc="outside lower center", ncols=min(4, len(cols)), fontsize=7)
     fig.suptitle(f"{table.manifest.name} (budget {', '.join(table.budgets) or '—'})", fontsize=9)
     return fig
 
