@@ -20,14 +20,15 @@ def _num(v: float | None, signed: bool = False) -> str:
     return "—" if v is None else f"{v:+.2f}" if signed else f"{v:.2f}"
 
 
-def _ours(cell: Cell) -> str:
-    """The reproduced part of a cell as plain text."""
-    s = cell.status
-    if s == "published":
-        return "—"
-    if s != "ok":
-        return f"{s}: {cell.why()}"
-    return f"{cell.value:.2f} [{cell.ci[0]:.2f}, {cell.ci[1]:.2f}]"
+def _ours(cell: Cell, ok: str = "{v:.2f} [{lo:.2f}, {hi:.2f}]", missing: str = "{status}: {why}",
+          published: str = "—", escape=str) -> str:
+    """The reproduced part of a cell in one format's markup: `ok` formats a value and its interval,
+    `missing` what an incomplete or unavailable cell lacks, `published` stands for a published-only column."""
+    if cell.status == "ok":
+        return ok.format(v=cell.value, lo=cell.ci[0], hi=cell.ci[1])
+    if cell.status == "published":
+        return published
+    return missing.format(status=cell.status, why=escape(cell.why()))
 
 
 def header_lines(table: Table) -> list[str]:
@@ -93,12 +94,7 @@ def latex(table: Table) -> str:
             lines.append(r"\midrule")
         parts = []
         for c in row.cells:
-            if c.status == "ok":
-                ours = rf"{c.value:.2f}\,{{\scriptsize[{c.ci[0]:.2f}, {c.ci[1]:.2f}]}}"
-            elif c.status == "published":
-                ours = "--"
-            else:
-                ours = rf"\textit{{{c.status}: {_tex(c.why())}}}"
+            ours = _ours(c, r"{v:.2f}\,{{\scriptsize[{lo:.2f}, {hi:.2f}]}}", r"\textit{{{status}: {why}}}", "--", _tex)
             parts += [ours, "--" if c.published is None else f"{c.published:.2f}", "--" if c.delta is None else f"{c.delta:+.2f}"]
         label = _tex(row.label) if row.kind == "set" else rf"\textbf{{{_tex(row.label)}}}"
         lines.append(f"{label} & " + " & ".join(parts) + r" \\")
@@ -116,12 +112,7 @@ def html_text(table: Table) -> str:
     for row in table.rows:
         tds = []
         for c in row.cells:
-            if c.status == "ok":
-                ours = f"{c.value:.2f} <small>[{c.ci[0]:.2f}, {c.ci[1]:.2f}]</small>"
-            elif c.status == "published":
-                ours = "—"
-            else:
-                ours = f'<i class="{c.status}">{e(c.status)}: {e(c.why())}</i>'
+            ours = _ours(c, "{v:.2f} <small>[{lo:.2f}, {hi:.2f}]</small>", '<i class="{status}">{status}: {why}</i>', escape=e)
             tds.append(f"<td>{ours}</td><td>{_num(c.published)}</td><td>{_num(c.delta, True)}</td>")
         cls = "" if row.kind == "set" else ' class="average"'
         body.append(f"<tr{cls}><th>{e(row.label)}</th>{''.join(tds)}</tr>")
