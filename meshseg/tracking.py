@@ -56,12 +56,13 @@ def config_hash(config: dict, exclude=(), extra: dict | None = None) -> str:
 
 def fold_identity(cfg, category: str, fold: int, data_hash: str) -> tuple[dict, str]:
     """The resolved config of one fold's run and its config hash: what `meshseg.run` logs and skips on,
-    and what the report looks runs up by."""
-    from omegaconf import OmegaConf
+    and what the report looks runs up by. `cfg` is the composed config or its resolved dict (the
+    report resolves once per column and asks for every fold)."""
+    from omegaconf import DictConfig, OmegaConf
 
-    config = OmegaConf.to_container(cfg, resolve=True)
+    config = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
     config.update(category=category, fold=fold)
-    return config, config_hash(config, cfg.tracking.hash_exclude, {"data_hash": data_hash})
+    return config, config_hash(config, config["tracking"]["hash_exclude"], {"data_hash": data_hash})
 
 
 def git_sha() -> str:

@@ -196,6 +196,7 @@ def collect(manifest: Manifest, overrides=(), *, metric: str = "acc", n_boot: in
                     except (MeshDataError, OSError, ValueError) as e:
                         datasets[dkey] = f"dataset {cfg.dataset._target_.rsplit('.', 1)[-1]} unavailable: {e}"
                 dataset = datasets[dkey]
+                resolved = None   # the column's resolved config, made once for all its sets and folds
                 for s, cell in zip(chosen, (row[j] for row in grid)):
                     cell.budget, cell.overrides = cfg.budget.name, tuple(over)
                     if isinstance(dataset, str):
@@ -212,8 +213,9 @@ def collect(manifest: Manifest, overrides=(), *, metric: str = "acc", n_boot: in
                         cell.problem = str(e)
                         continue
                     found, missing = [], []
+                    resolved = resolved or OmegaConf.to_container(cfg, resolve=True)
                     for fold in folds:
-                        _, chash = fold_identity(cfg, category, fold.index, dataset.data_hash)
+                        _, chash = fold_identity(resolved, category, fold.index, dataset.data_hash)
                         run = runs.by_hash.get(chash)
                         (found if run is not None else missing).append(run if run is not None else fold.index)
                     cell.folds, cell.missing = len(folds), tuple(missing)
