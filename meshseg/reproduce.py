@@ -18,9 +18,8 @@ import subprocess
 import sys
 
 from meshseg.data.mesh import MeshDataError
-from meshseg.report import build, load_manifest, log_report, split_overrides, write_report
+from meshseg.report import build, load_manifest, publish, split_overrides, summary
 from meshseg.report.table import Table
-from meshseg.report.write import markdown
 
 log = logging.getLogger("meshseg.reproduce")
 
@@ -37,35 +36,34 @@ def missing_sweeps(table: Table) -> list[list[str]]:
     return sweeps
 
 
-def reproduce(manifest_path, args=(), launch=None) -> tuple[Table, list[list[str]], list[list[str]]]:
-    """Launch what is missing (unless report.dry_run), then build and write the report.
-    Returns the final table, the sweeps launched and those that failed."""
+def reproduce(manifest_path, args=()) -> tuple[Table, list[list[str]], list[list[str]], tuple | None]:
+    """Launch what is missing (unless report.dry_run), then build, write and log the report.
+    Returns the final table, the sweeps launched, those that failed, and (files, report run id)
+    or None for a dry run."""
     settings, run_overrides = split_overrides(args)
     manifest = load_manifest(manifest_path)
-    before = build(manifest, run_overrides, settings)
-    for row in before.rows:
+    table = build(manifest, run_overrides, settings)
+    for row in table.rows:
         for c in row.cells:
             if row.kind == "set" and c.status == "unavailable":
                 log.warning("cannot run %s / %s: %s", row.label, c.column.key, c.problem)
-    sweeps = missing_sweeps(before)
+    sweeps = missing_sweeps(table)
     folds = sum(len(s[-1].split(",")) for s in sweeps)
     log.info("%s: %d cell(s) lack %d fold run(s)", manifest.name, len(sweeps), folds)
+    if settings.dry_run:
+        for i, over in enumerate(sweeps, 1):
+            log.info("[%d/%d] would run: -m meshseg.run -m %s", i, len(sweeps), " ".join(over))
+        return table, sweeps, [], None
     failed = []
     for i, over in enumerate(sweeps, 1):
         cmd = [sys.executable, "-m", "meshseg.run", "-m", *over]
         log.info("[%d/%d] %s", i, len(sweeps), " ".join(cmd[1:]))
-        if settings.dry_run:
-            continue
-        if (launch or subprocess.run)(cmd).returncode != 0:
+        if subprocess.run(cmd).returncode != 0:
             failed.append(over)
             log.error("sweep failed (its runs are marked FAILED in the store): %s", " ".join(over))
-    table = before if settings.dry_run or not sweeps else build(manifest, run_overrides, settings)
-    if not settings.dry_run:
-        files = write_report(table, f"{settings.out_dir}/{manifest.name}")
-        run_id = log_report(table, files, settings) if settings.log else None
-        print(markdown(table))
-        print(f"wrote {', '.join(map(str, files))}" + (f"; logged as run {run_id}" if run_id else ""))
-    return table, sweeps, failed
+    if sweeps:
+        table = build(manifest, run_overrides, settings)
+    return table, sweeps, failed, publish(table, settings)
 
 
 def main(argv: list[str]) -> int:
@@ -74,10 +72,12 @@ def main(argv: list[str]) -> int:
         return 0 if argv else 2
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
-        _, _, failed = reproduce(argv[0], argv[1:])
+        table, _, failed, published = reproduce(argv[0], argv[1:])
     except (MeshDataError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    if published:
+        print(summary(table, *published))
     return 1 if failed else 0
 
 

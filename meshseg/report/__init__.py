@@ -15,9 +15,9 @@ from omegaconf import DictConfig, OmegaConf
 from meshseg import CONF_DIR
 from meshseg.report.manifest import Manifest, ManifestError, load_manifest
 from meshseg.report.table import Table, collect
-from meshseg.report.write import write_report
+from meshseg.report.write import markdown, write_report
 
-__all__ = ["ManifestError", "Manifest", "Table", "load_manifest", "collect", "write_report", "split_overrides", "report"]
+__all__ = ["ManifestError", "Manifest", "Table", "load_manifest", "collect", "write_report", "split_overrides", "publish", "summary", "report"]
 
 
 def split_overrides(args) -> tuple[DictConfig, list[str]]:
@@ -70,11 +70,19 @@ def log_report(table: Table, files: list[Path], settings: DictConfig) -> str:
     return run_id
 
 
+def publish(table: Table, settings: DictConfig) -> tuple[list[Path], str | None]:
+    """Write every format under <out_dir>/<manifest name>/ and, unless report.log=false, log them."""
+    files = write_report(table, Path(settings.out_dir) / table.manifest.name)
+    return files, log_report(table, files, settings) if settings.log else None
+
+
+def summary(table: Table, files: list[Path], run_id: str | None) -> str:
+    """What the commands print: the Markdown table, then where it went."""
+    return markdown(table) + f"\nwrote {', '.join(map(str, files))}" + (f"; logged as run {run_id}" if run_id else "")
+
+
 def report(manifest_path, args=()) -> tuple[Table, list[Path], str | None]:
     """Build, write and (unless report.log=false) log one manifest's report."""
     settings, run_overrides = split_overrides(args)
-    manifest = load_manifest(manifest_path)
-    table = build(manifest, run_overrides, settings)
-    files = write_report(table, Path(settings.out_dir) / manifest.name)
-    run_id = log_report(table, files, settings) if settings.log else None
-    return table, files, run_id
+    table = build(load_manifest(manifest_path), run_overrides, settings)
+    return table, *publish(table, settings)

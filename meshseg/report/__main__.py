@@ -4,8 +4,7 @@ import logging
 import sys
 
 from meshseg.data.mesh import MeshDataError
-from meshseg.report import report
-from meshseg.report.write import markdown
+from meshseg.report import report, summary
 
 
 def main(argv: list[str]) -> int:
@@ -18,8 +17,7 @@ def main(argv: list[str]) -> int:
     except (MeshDataError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    print(markdown(table))
-    print(f"wrote {', '.join(str(f) for f in files)}" + (f"; logged as run {run_id}" if run_id else ""))
+    print(summary(table, files, run_id))
     return 0
 
 
