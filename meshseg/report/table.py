@@ -147,6 +147,36 @@ class _Runs:
             raise ValueError(f"run {run.info.run_id} ({run.info.run_name}): cannot read {self.metric} from per_mesh.csv: {e}") from None
 
 
+def _fill(cell: Cell, category: str, dataset, split, resolved: dict, runs: _Runs) -> None:
+    """Find a cell's category and folds, the FINISHED run of each fold by config hash, and, when
+    none is missing, the per-mesh accuracies; or say why the cell cannot have runs."""
+    from meshseg.data.mesh import MeshDataError
+    from meshseg.data.splits import folds_for
+    from meshseg.tracking import fold_identity
+
+    cell.category = _match_category(dataset, category)
+    if cell.category is None:
+        cell.problem = f"dataset {dataset.name} has no category {category!r}"
+        return
+    try:
+        folds = folds_for(dataset, cell.category, split)
+    except (MeshDataError, ValueError) as e:
+        cell.problem = str(e)
+        return
+    found, missing = [], []
+    for fold in folds:
+        _, chash = fold_identity(resolved, cell.category, fold.index, dataset.data_hash)
+        run = runs.by_hash.get(chash)
+        if run is None:
+            missing.append(fold.index)
+        else:
+            found.append(run)
+    cell.folds, cell.missing = len(folds), tuple(missing)
+    cell.run_ids = tuple(r.info.run_id for r in found)
+    if not missing:
+        cell.accs = np.array([a for r in found for a in runs.mesh_accuracies(r)])
+
+
 def collect(manifest: Manifest, overrides=(), *, metric: str = "acc", n_boot: int = 2000, level: float = 0.95,
             seed: int = 0, sets=None) -> Table:
     """Build the table of `manifest` from the runs in the store the composed config names.
@@ -159,8 +189,6 @@ def collect(manifest: Manifest, overrides=(), *, metric: str = "acc", n_boot: in
     from meshseg import CONF_DIR
     from meshseg.data.datasets import build_dataset
     from meshseg.data.mesh import MeshDataError
-    from meshseg.data.splits import folds_for
-    from meshseg.tracking import fold_identity
 
     keep = None if sets is None else {str(s) for s in sets}
     stores: dict[tuple[str, str], _Runs] = {}
@@ -196,32 +224,13 @@ def collect(manifest: Manifest, overrides=(), *, metric: str = "acc", n_boot: in
                     except (MeshDataError, OSError, ValueError) as e:
                         datasets[dkey] = f"dataset {cfg.dataset._target_.rsplit('.', 1)[-1]} unavailable: {e}"
                 dataset = datasets[dkey]
-                resolved = None   # the column's resolved config, made once for all its sets and folds
+                resolved = OmegaConf.to_container(cfg, resolve=True)   # once per column, not per fold
                 for s, cell in zip(chosen, (row[j] for row in grid)):
                     cell.budget, cell.overrides = cfg.budget.name, tuple(over)
                     if isinstance(dataset, str):
                         cell.problem = dataset
-                        continue
-                    category = _match_category(dataset, s.category)
-                    if category is None:
-                        cell.problem = f"dataset {dataset.name} has no category {s.category!r}"
-                        continue
-                    cell.category = category
-                    try:
-                        folds = folds_for(dataset, category, cfg.split)
-                    except (MeshDataError, ValueError) as e:
-                        cell.problem = str(e)
-                        continue
-                    found, missing = [], []
-                    resolved = resolved or OmegaConf.to_container(cfg, resolve=True)
-                    for fold in folds:
-                        _, chash = fold_identity(resolved, category, fold.index, dataset.data_hash)
-                        run = runs.by_hash.get(chash)
-                        (found if run is not None else missing).append(run if run is not None else fold.index)
-                    cell.folds, cell.missing = len(folds), tuple(missing)
-                    cell.run_ids = tuple(r.info.run_id for r in found)
-                    if not missing:
-                        cell.accs = np.array([a for r in found for a in runs.mesh_accuracies(r)])
+                    else:
+                        _fill(cell, s.category, dataset, cfg.split, resolved, runs)
             for s, cells in zip(chosen, grid):
                 for cell in cells:
                     cell_no += 1
