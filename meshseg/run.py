@@ -109,7 +109,7 @@ def run(cfg: DictConfig) -> float:
     dataset = build_dataset(cfg.dataset)
     category, fold = resolve_cell(cfg, dataset)
     features = FeatureSet.from_config(cfg.features)
-    config, chash = fold_identity(cfg, category, fold.index, dataset.data_hash)
+    config, chash = fold_identity(cfg, category, fold, dataset.data_hash)
     name = f"{cfg.model.name} {cfg.branches}B {dataset.name}/{category} {split_name(cfg.split)} fold {fold.index}"
 
     tracker = Tracker(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_dir)

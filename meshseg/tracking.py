@@ -28,9 +28,31 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-#: tags every run carries (the report selects runs by these)
-CONTRACT_TAGS = ("dataset", "category", "model", "branches", "features", "split", "fold", "refine", "budget",
-                 "config_hash", "git_sha", "data_hash")
+
+
+class FoldRecord:
+    """What one fold's run records, defined once: `meshseg.run` writes it; the report, `reproduce` and
+    the notebooks read it by these names."""
+
+    #: tags every fold run carries (the report selects runs by these)
+    TAGS = ("dataset", "category", "model", "branches", "features", "split", "fold", "refine", "budget",
+            "config_hash", "git_sha", "data_hash")
+    #: the two accuracies every fold logs (area-weighted mean over the test meshes), after and before refinement
+    ACC, ACC_RAW = "test_acc", "test_acc_raw"
+    #: artifact: the resolved config (YAML)
+    CONFIG = "config.yaml"
+    #: artifact: one row per test mesh, these columns (accuracies in [0, 1], area-weighted)
+    PER_MESH = "per_mesh.csv"
+    PER_MESH_COLUMNS = ("mesh", "faces", "area", "acc_raw", "acc")
+    #: the per-mesh columns a report may average
+    MESH_METRICS = ("acc", "acc_raw")
+    #: artifact: per-face arrays, keys `<prefix><mesh id>` with these dtypes
+    PREDICTIONS = "predictions.npz"
+    PREDICTION_ARRAYS = {"labels_": "int16", "labels_raw_": "int16", "probs_": "float16"}
+
+
+#: kept for callers of the earlier name
+CONTRACT_TAGS = FoldRecord.TAGS
 
 
 def flatten(node, prefix: str = "") -> dict[str, object]:
@@ -54,15 +76,18 @@ def config_hash(config: dict, exclude=(), extra: dict | None = None) -> str:
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
-def fold_identity(cfg, category: str, fold: int, data_hash: str) -> tuple[dict, str]:
+def fold_identity(cfg, category: str, fold, data_hash: str) -> tuple[dict, str]:
     """The resolved config of one fold's run and its config hash: what `meshseg.run` logs and skips on,
     and what the report looks runs up by. `cfg` is the composed config or its resolved dict (the
-    report resolves once per column and asks for every fold)."""
+    report resolves once per column and asks for every fold). `fold` is a `meshseg.data.splits.Fold`:
+    its train and test mesh ids enter the hash, so another split file, or another way of dealing
+    meshes into folds, never reuses a run of a different fold."""
     from omegaconf import DictConfig, OmegaConf
 
     config = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
-    config.update(category=category, fold=fold)
-    return config, config_hash(config, config["tracking"]["hash_exclude"], {"data_hash": data_hash})
+    config.update(category=category, fold=fold.index)
+    extra = {"data_hash": data_hash, "train": list(fold.train), "test": list(fold.test)}
+    return config, config_hash(config, config["tracking"]["hash_exclude"], extra)
 
 
 def git_sha() -> str:

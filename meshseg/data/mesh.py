@@ -8,14 +8,9 @@ from functools import cached_property
 
 import numpy as np
 
+from meshseg.errors import MeshDataError
 
-class MeshDataError(ValueError):
-    """Bad mesh or label data; the message names the file and the problem."""
-
-    def __init__(self, source: object, problem: str):
-        super().__init__(f"{source}: {problem}")
-        self.source = str(source)
-        self.problem = problem
+__all__ = ["Mesh", "MeshDataError", "face_areas"]
 
 
 def face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

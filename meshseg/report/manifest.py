@@ -8,8 +8,10 @@ from pathlib import Path
 
 import yaml
 
+from meshseg import errors
 
-class ManifestError(ValueError):
+
+class ManifestError(errors.ManifestError):
     """A manifest that cannot be used; the message names the file and the problem."""
 
     def __init__(self, path, problem: str):

@@ -165,7 +165,7 @@ def _fill(cell: Cell, category: str, dataset, split, resolved: dict, runs: _Runs
         return
     found, missing = [], []
     for fold in folds:
-        _, chash = fold_identity(resolved, cell.category, fold.index, dataset.data_hash)
+        _, chash = fold_identity(resolved, cell.category, fold, dataset.data_hash)
         run = runs.by_hash.get(chash)
         if run is None:
             missing.append(fold.index)
