@@ -24,6 +24,9 @@ class MeshDataError(MeshsegError, ValueError):
         self.source = str(source)
         self.problem = problem
 
+    def __reduce__(self):  # pickled across joblib / submitit workers: rebuild from both parts
+        return type(self), (self.source, self.problem)
+
 
 class ManifestError(MeshsegError, ValueError):
     """A study manifest (experiments/*.yaml) that cannot be used; the message names the file."""

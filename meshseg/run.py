@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import sys
+from pathlib import Path
 
 import hydra
 import numpy as np
@@ -20,7 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from meshseg import CONF_DIR
 from meshseg.data.datasets import MeshDataset, build_dataset
-from meshseg.data.mesh import MeshDataError
+from meshseg.errors import ConfigError, MeshsegError
 from meshseg.data.splits import Fold, folds_for, split_name
 
 log = logging.getLogger("meshseg.run")
@@ -29,18 +30,61 @@ BRANCHES = (1, 2, 3, 4)
 RING_ADJACENCY = ("edge", "vertex")
 
 
+def known_settings() -> tuple[str, ...]:
+    """The top-level keys a run config may have: conf/run.yaml's groups and its own keys."""
+    import yaml
+
+    primary = yaml.safe_load((Path(CONF_DIR) / "run.yaml").read_text())
+    groups = [next(iter(d)) if isinstance(d, dict) else d for d in primary["defaults"]]
+    keys = [*(g for g in groups if g != "_self_" and not g.startswith("override ")), *primary]
+    return tuple(k for k in dict.fromkeys(keys) if k not in ("defaults", "hydra"))
+
+
+def check_settings(keys) -> None:
+    """Refuse a top-level key no config group or setting uses (`+modle=cnn1d` would otherwise train the
+    default model with a junk key in its config hash), suggesting the nearest known one."""
+    import difflib
+
+    known = known_settings()
+    for key in keys:
+        if key not in known:
+            near = difflib.get_close_matches(key, known, n=1)
+            hint = f" (did you mean {near[0]}?)" if near else ""
+            raise ConfigError(f"unknown setting {key!r}{hint}: meshseg.run takes {', '.join(known)}")
+
+
+def check_argv(argv: list[str]) -> None:
+    """`check_settings` on the command line's overrides, before Hydra suggests `+key=` for a typo."""
+    keys = []
+    for arg in argv:
+        if arg.startswith("-") or "=" not in arg:
+            continue  # -m, --flags and their values
+        key = arg.split("=", 1)[0].lstrip("+~").split(".")[0].split("/")[0].split("@")[0]
+        if key != "hydra":
+            keys.append(key)
+    check_settings(keys)
+
+
 def check_knobs(cfg: DictConfig) -> None:
     """Values no config group can check for itself; each message lists what is allowed."""
+    check_settings([k for k in cfg.keys() if k != "hydra"])  # a sweep job's config carries hydra's own node
     if cfg.branches not in BRANCHES:
-        raise ValueError(f"branches={cfg.branches} is not allowed: choose one of {list(BRANCHES)}")
+        raise ConfigError(f"branches={cfg.branches} is not allowed: choose one of {list(BRANCHES)}")
     fixed = cfg.model.get("branches")
     if fixed is not None and cfg.branches != fixed:
-        raise ValueError(f"branches={cfg.branches} is not allowed with model={cfg.model.name}: it takes branches={fixed}")
+        raise ConfigError(f"branches={cfg.branches} is not allowed with model={cfg.model.name}: "
+                          f"it takes branches={fixed}")
     if cfg.ring_adjacency not in RING_ADJACENCY:
-        raise ValueError(f"ring_adjacency={cfg.ring_adjacency} is not allowed: choose one of {list(RING_ADJACENCY)}")
+        raise ConfigError(f"ring_adjacency={cfg.ring_adjacency} is not allowed: choose one of {list(RING_ADJACENCY)}")
     b = cfg.budget
     if not (int(b.epochs) >= 1 and int(b.batch_size) >= 1 and (b.faces_per_mesh is None or int(b.faces_per_mesh) >= 1)):
-        raise ValueError(f"budget {b.name}: epochs and batch_size must be >= 1 and faces_per_mesh >= 1 or null")
+        raise ConfigError(f"budget {b.name}: epochs and batch_size must be >= 1 and faces_per_mesh >= 1 or null")
+    if not (isinstance(cfg.seed, int) and isinstance(cfg.workers, int) and cfg.workers >= 1):
+        raise ConfigError(f"seed={cfg.seed} must be an integer and workers={cfg.workers} an integer >= 1")
+    t = cfg.tracking
+    if not (float(t.heartbeat_s) > 0 and float(t.lease_timeout_s) > 2 * float(t.heartbeat_s)):
+        raise ConfigError(f"tracking.heartbeat_s={t.heartbeat_s} must be > 0 and tracking.lease_timeout_s="
+                          f"{t.lease_timeout_s} more than twice it")
 
 
 def resolve_cell(cfg: DictConfig, dataset: MeshDataset) -> tuple[str, Fold]:
@@ -50,7 +94,7 @@ def resolve_cell(cfg: DictConfig, dataset: MeshDataset) -> tuple[str, Fold]:
     folds = folds_for(dataset, category, cfg.split)
     index = 0 if cfg.fold is None else cfg.fold
     if not (isinstance(index, int) and 0 <= index < len(folds)):
-        raise ValueError(f"fold={cfg.fold} is out of range: split {split_name(cfg.split)} of {category} has folds 0..{len(folds) - 1}")
+        raise ConfigError(f"fold={cfg.fold} is out of range: split {split_name(cfg.split)} of {category} has folds 0..{len(folds) - 1}")
     return category, folds[index]
 
 
@@ -88,6 +132,18 @@ def refine_features(mesh, cfg: DictConfig):
     return agd.compute(mesh.vertices, mesh.faces, mesh.content_hash, FeatureCache(cfg.paths.cache_dir))
 
 
+def _skipped(name: str, chash: str, holder) -> float:
+    """Log why a fold is not run (its config is FINISHED, or a live process runs it); its accuracy or NaN."""
+    acc = holder.data.metrics.get("test_acc", float("nan"))
+    if holder.info.status == "FINISHED":
+        log.info("skip: %s — config %s already has FINISHED run %s (test_acc %.4f)", name, chash,
+                 holder.info.run_id, acc)
+    else:
+        log.info("skip: %s — config %s is being run by run %s (%s)", name, chash, holder.info.run_id,
+                 holder.data.tags.get("lease.owner", "?"))
+    return acc
+
+
 def run(cfg: DictConfig) -> float:
     """One fold: skip if its config already has a FINISHED run, else train, evaluate and log it.
     Returns the fold's test accuracy (area-weighted, after refinement)."""
@@ -115,16 +171,19 @@ def run(cfg: DictConfig) -> float:
     tracker = Tracker(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_dir)
     done = tracker.finished(chash) if cfg.tracking.skip_finished else None
     if done is not None:
-        acc = done.data.metrics.get("test_acc", float("nan"))
-        log.info("skip: %s — config %s already has FINISHED run %s (test_acc %.4f)", name, chash, done.info.run_id, acc)
-        return acc
+        return _skipped(name, chash, done)
 
     tags = {"dataset": dataset.name, "category": category, "model": cfg.model.name, "branches": cfg.branches,
             "features": features.name, "split": split_name(cfg.split), "fold": fold.index, "refine": cfg.refine.name,
             "budget": cfg.budget.name, "config_hash": chash, "git_sha": git_sha(), "data_hash": dataset.data_hash,
             "seed": cfg.seed, "accelerator": cfg.trainer.accelerator}
     log.info("run: %s (config %s, %d train / %d test meshes)", name, chash, len(fold.train), len(fold.test))
-    with tracker.run(name, tags, flatten(config)) as run_id:
+    run_id = None
+    if cfg.tracking.skip_finished:  # claim the config: a concurrent sweep may have taken it since the check
+        run_id, holder = tracker.claim(name, tags, cfg.tracking.heartbeat_s, cfg.tracking.lease_timeout_s)
+        if run_id is None:
+            return _skipped(name, chash, holder)
+    with tracker.run(name, tags, flatten(config), run_id) as run_id:
         source = FeatureSource(dataset, category, features, cfg.paths.cache_dir, cfg.branches, cfg.ring_adjacency)
         preds = fit_predict(source, fold, cfg.model, cfg.budget, cfg.trainer, cfg.seed, cfg.workers,
                             logger=tracker.lightning_logger(run_id))
@@ -149,17 +208,26 @@ def run(cfg: DictConfig) -> float:
 
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="run")
-def main(cfg: DictConfig) -> float:
+def _app(cfg: DictConfig) -> float | None:
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
 
     logging.getLogger("pytorch_lightning.utilities.rank_zero").setLevel(logging.WARNING)  # no device banners
     try:
         return run(cfg)
-    except (MeshDataError, ValueError, FloatingPointError) as e:
+    except MeshsegError as e:
         if HydraConfig.get().mode == RunMode.MULTIRUN:
-            raise  # the launcher records it and goes on with the other jobs
+            raise  # the sweeper lists it with the other jobs' outcomes, then exits non-zero
         sys.exit(f"error: {e}")
+
+
+def main() -> None:
+    """`python -m meshseg.run`: the command line's settings checked, then the Hydra app."""
+    try:
+        check_argv(sys.argv[1:])
+    except MeshsegError as e:
+        sys.exit(f"error: {e}")
+    _app()
 
 
 if __name__ == "__main__":

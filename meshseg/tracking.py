@@ -26,6 +26,8 @@ from typing import Iterator
 
 import numpy as np
 
+from meshseg.errors import TrackingError
+
 log = logging.getLogger(__name__)
 
 
@@ -102,14 +104,62 @@ def git_sha() -> str:
     return sha + ("+dirty" if dirty else "")
 
 
+#: MLflow's store schemes (a `+driver` suffix is allowed on the database ones)
+STORE_SCHEMES = ("sqlite", "postgresql", "mysql", "mssql", "file", "http", "https", "databricks")
+
+
 def store_uri(uri: str) -> str:
-    """A relative sqlite path made absolute (so workers and `mlflow ui` agree), its folder created."""
+    """A relative sqlite path made absolute (so workers and `mlflow ui` agree), its folder created.
+    An unknown scheme is refused here, with what is allowed."""
+    from urllib.parse import urlparse
+
+    scheme = urlparse(uri).scheme.split("+")[0]
+    if scheme not in ("", *STORE_SCHEMES) or (scheme == "" and "://" in uri):
+        raise TrackingError(f"tracking.uri={uri}: unknown store scheme {scheme!r}; use sqlite:///PATH/mlflow.db, "
+                            f"http(s)://HOST:PORT (a tracking server) or one of {list(STORE_SCHEMES)}")
     prefix = "sqlite:///"
     if uri.startswith(prefix):
         path = Path(uri[len(prefix):]).expanduser().absolute()
-        path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise TrackingError(f"tracking.uri={uri}: cannot create the store's folder {path.parent} ({e})") from None
+        if path.is_dir():
+            raise TrackingError(f"tracking.uri={uri}: {path} is a folder; name the database file (…/mlflow.db)")
         return prefix + str(path)
     return uri
+
+
+def check_server(uri: str, timeout: float = 5.0) -> None:
+    """An http(s) store must answer its health check within `timeout` seconds: MLflow's own client
+    retries for minutes before it gives up."""
+    import urllib.error
+    import urllib.request
+
+    try:
+        with urllib.request.urlopen(uri.rstrip("/") + "/health", timeout=timeout) as r:
+            if r.status == 200:
+                return
+            problem = f"its health check answered HTTP {r.status}"
+    except urllib.error.HTTPError as e:
+        problem = f"its health check answered HTTP {e.code}"
+    except (urllib.error.URLError, OSError) as e:
+        problem = f"no MLflow server answers ({getattr(e, 'reason', e)})"
+    raise TrackingError(f"tracking.uri={uri}: {problem}; start one with `mlflow server` or use a sqlite:/// store")
+
+
+@contextmanager
+def _file_lock(path: Path) -> Iterator[None]:
+    """An exclusive lock on `path` (created if missing) for the duration of the block: processes on
+    one machine initialising one sqlite store take turns."""
+    import fcntl
+
+    with open(path, "a") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
 
 
 def _retry(fn, what: str, attempts: int = 8):
@@ -126,6 +176,65 @@ def _retry(fn, what: str, attempts: int = 8):
             time.sleep(0.2 * 2**i)
 
 
+#: lease tags of a claimed run (Tracker.claim): who runs it, when it last said so, and the timing
+LEASE_OWNER, LEASE_HEARTBEAT = "lease.owner", "lease.heartbeat"
+LEASE_TIMEOUT, LEASE_INTERVAL = "lease.timeout_s", "lease.interval_s"
+
+
+def _owner() -> str:
+    import os
+    import socket
+
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+def _lease_alive(run) -> bool:
+    """Whether a RUNNING run's process is still at work: its heartbeat is recent and, when it runs on
+    this host, its process exists (so a run killed outright here is taken over at once)."""
+    import os
+    import socket
+
+    tags = run.data.tags
+    try:
+        age = time.time() - float(tags[LEASE_HEARTBEAT])
+        timeout = float(tags.get(LEASE_TIMEOUT, 120))
+    except (KeyError, ValueError):
+        return False  # no lease: a run from before leases, or a damaged one
+    host, _, pid = tags.get(LEASE_OWNER, "").rpartition(":")
+    if host == socket.gethostname() and pid.isdigit():
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            return False
+        except PermissionError:
+            pass  # it exists, under another user
+    return age < timeout
+
+
+class _Heartbeat:
+    """A daemon thread that refreshes a run's heartbeat tag every lease interval until stopped."""
+
+    def __init__(self, client, run_id: str):
+        import threading
+
+        self.client, self.run_id = client, run_id
+        self.interval = float(client.get_run(run_id).data.tags.get(LEASE_INTERVAL, 30))
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._beat, name=f"heartbeat-{run_id[:8]}", daemon=True)
+        self._thread.start()
+
+    def _beat(self) -> None:
+        while not self._stop.wait(self.interval):
+            try:
+                self.client.set_tag(self.run_id, LEASE_HEARTBEAT, f"{time.time():.0f}")
+            except Exception as e:  # a store hiccup must not kill training; the next beat retries
+                log.warning("heartbeat of run %s: %s", self.run_id, e)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=10)
+
+
 class Tracker:
     """One MLflow experiment in one store."""
 
@@ -133,8 +242,17 @@ class Tracker:
         from mlflow import MlflowClient
 
         self.uri = store_uri(uri)
-        self.client = MlflowClient(tracking_uri=self.uri)
-        self.experiment_id = self._experiment(experiment, artifact_dir)
+        if self.uri.startswith(("http://", "https://")):
+            check_server(self.uri)
+        if self.uri.startswith("sqlite:///"):
+            # MLflow creates and migrates a new sqlite schema on first use; two processes doing that at
+            # once collide ("duplicate column name"), so the first use happens under a lock beside the file.
+            with _file_lock(Path(self.uri[len("sqlite:///"):] + ".lock")):
+                self.client = MlflowClient(tracking_uri=self.uri)
+                self.experiment_id = self._experiment(experiment, artifact_dir)
+        else:
+            self.client = MlflowClient(tracking_uri=self.uri)
+            self.experiment_id = self._experiment(experiment, artifact_dir)
 
     def _experiment(self, name: str, artifact_dir: str | None) -> str:
         from mlflow.exceptions import MlflowException
@@ -163,35 +281,75 @@ class Tracker:
         runs = self.runs(f"tags.config_hash = '{config_hash}' and attributes.status = 'FINISHED'")
         return runs[0] if runs else None
 
-    @contextmanager
-    def run(self, name: str, tags: dict, params: dict) -> Iterator[str]:
-        """Create a run, yield its id, and end it FINISHED, FAILED (error text tagged) or KILLED."""
-        from mlflow.entities import Param
+    def claim(self, name: str, tags: dict, heartbeat_s: float = 30.0,
+              lease_timeout_s: float = 120.0) -> tuple[str | None, object | None]:
+        """Create this config's run, RUNNING under a lease, unless the config is taken: returns (run id,
+        None), or (None, the holder) when another run of the same `config_hash` is FINISHED or held by a
+        live process.
+
+        No lock is needed, so it works on any store: every claimant first creates its run, then looks
+        at the others; among live claimants the earliest (start time, run id) keeps the config and the
+        rest delete their own run. A lease is live while its owner's heartbeat tag is younger than
+        `lease_timeout_s` (and, on this host, while its process exists); a dead one is taken over and
+        its run marked KILLED."""
+        chash = tags["config_hash"]
+        lease = {LEASE_OWNER: _owner(), LEASE_HEARTBEAT: f"{time.time():.0f}",
+                 LEASE_TIMEOUT: f"{lease_timeout_s:g}", LEASE_INTERVAL: f"{heartbeat_s:g}"}
+        mine = self._create(name, {**tags, **lease})
+        key = (mine.info.start_time, mine.info.run_id)
+        others = [r for r in self.runs(f"tags.config_hash = '{chash}'") if r.info.run_id != mine.info.run_id]
+        holder = next((r for r in others if r.info.status == "FINISHED"), None)
+        if holder is None:
+            live = [r for r in others if r.info.status == "RUNNING" and _lease_alive(r)]
+            holder = min((r for r in live if (r.info.start_time, r.info.run_id) < key),
+                         key=lambda r: (r.info.start_time, r.info.run_id), default=None)
+        if holder is not None:
+            self.client.delete_run(mine.info.run_id)
+            return None, holder
+        for stale in others:
+            if stale.info.status == "RUNNING" and not _lease_alive(stale):  # its process died mid-run
+                self.client.set_tag(stale.info.run_id, "superseded_by", mine.info.run_id)
+                self.client.set_terminated(stale.info.run_id, "KILLED")
+        return mine.info.run_id, None
+
+    def _create(self, name: str, tags: dict):
         from mlflow.utils.mlflow_tags import MLFLOW_RUN_NAME
 
-        run = _retry(lambda: self.client.create_run(self.experiment_id, run_name=name,
-                                                    tags={**{k: str(v) for k, v in tags.items()}, MLFLOW_RUN_NAME: name}), "create run")
-        run_id = run.info.run_id
+        tags = {**{k: str(v) for k, v in tags.items()}, MLFLOW_RUN_NAME: name}
+        return _retry(lambda: self.client.create_run(self.experiment_id, run_name=name, tags=tags), "create run")
+
+    @contextmanager
+    def run(self, name: str, tags: dict, params: dict, run_id: str | None = None) -> Iterator[str]:
+        """Yield a run's id (`run_id`, claimed before, or a new run) and end it FINISHED, FAILED (error
+        text tagged) or KILLED. A claimed run's heartbeat is kept fresh meanwhile."""
+        from mlflow.entities import Param
+
+        run_id = run_id or self._create(name, tags).info.run_id
+        beat = _Heartbeat(self.client, run_id) if run_id and self._leased(run_id) else None
         try:
             items = [Param(k, str(v)[:6000]) for k, v in params.items()]
             for i in range(0, len(items), 100):
                 _retry(lambda: self.client.log_batch(run_id, params=items[i : i + 100]), "log params")
             yield run_id
         except KeyboardInterrupt:
-            self.client.set_terminated(run_id, "KILLED")
+            self._end(beat, run_id, "KILLED")
             raise
         except BaseException as e:
             text = "".join(traceback.format_exception_only(type(e), e)).strip()
             self.client.set_tag(run_id, "error", text[:5000])
             self.client.log_text(run_id, traceback.format_exc(), "error.txt")
-            self.client.set_terminated(run_id, "FAILED")
+            self._end(beat, run_id, "FAILED")
             raise
         else:
-            self.client.set_terminated(run_id, "FINISHED")
-            for stale in self.runs(f"tags.config_hash = '{tags['config_hash']}' and attributes.status = 'RUNNING'"):
-                if stale.info.run_id != run_id:  # a run of the same config killed outright earlier
-                    self.client.set_tag(stale.info.run_id, "superseded_by", run_id)
-                    self.client.set_terminated(stale.info.run_id, "KILLED")
+            self._end(beat, run_id, "FINISHED")
+
+    def _leased(self, run_id: str) -> bool:
+        return LEASE_OWNER in self.client.get_run(run_id).data.tags
+
+    def _end(self, beat, run_id: str, status: str) -> None:
+        if beat is not None:
+            beat.stop()
+        _retry(lambda: self.client.set_terminated(run_id, status), "end run")
 
     def log_metrics(self, run_id: str, metrics: dict[str, float]) -> None:
         from mlflow.entities import Metric

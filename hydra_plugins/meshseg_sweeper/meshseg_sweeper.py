@@ -1,13 +1,24 @@
 """Hydra's basic sweeper, plus: a job whose overrides do not fix `category` runs every category of
 its dataset, and one that does not fix `fold` every fold of its split (folds differ per category
-under leave-one-out, so this is not a Cartesian product Hydra could express)."""
+under leave-one-out, so this is not a Cartesian product Hydra could express).
 
+Every job's settings are checked before the first job starts; a bad one ends the sweep with one
+`error:` line. Jobs that fail with a user error (bad data) are listed one line each after the sweep,
+which then exits non-zero; any other failure keeps its traceback.
+"""
+
+import sys
+import time
 from dataclasses import dataclass
-from typing import Dict, List, Optional
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Sequence
 
 from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
 from hydra.core.config_store import ConfigStore
+from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.core.override_parser.types import Override
+from hydra.core.utils import JobReturn, JobStatus
+from omegaconf import OmegaConf
 
 
 @dataclass
@@ -22,13 +33,52 @@ ConfigStore.instance().store(group="hydra/sweeper", name="meshseg", node=Meshseg
 
 class MeshsegSweeper(BasicSweeper):
     def split_arguments(self, overrides: List[Override], max_batch_size: Optional[int]) -> List[List[List[str]]]:
+        from meshseg.errors import MeshsegError
         from meshseg.run import sweep_cells
 
         jobs = []
         for combo in BasicSweeper.split_arguments(overrides, None)[0]:
             keys = {o.split("=", 1)[0].lstrip("+~") for o in combo}
-            cfg = self.hydra_context.config_loader.load_sweep_config(self.config, list(combo))
-            for category, fold in sweep_cells(cfg, "category" in keys, "fold" in keys):
+            try:
+                cfg = self.hydra_context.config_loader.load_sweep_config(self.config, list(combo))
+                cells = sweep_cells(cfg, "category" in keys, "fold" in keys)
+            except MeshsegError as e:
+                sys.exit(f"error: {e}")
+            for category, fold in cells:
                 jobs.append([*combo, *([f"category={category}"] if category is not None else []),
                              *([f"fold={fold}"] if fold is not None else [])])
         return list(BasicSweeper.split_overrides_to_chunks(jobs, max_batch_size))
+
+    def sweep(self, arguments: List[str]) -> Any:
+        """BasicSweeper.sweep, except that failed jobs are gathered and reported together at the end
+        (the basic sweeper re-raises the first with a traceback, whatever it was)."""
+        from meshseg.errors import MeshsegError
+
+        params_conf = self._parse_config()
+        params_conf.extend(arguments)
+        parser = OverridesParser.create(config_loader=self.hydra_context.config_loader)
+        self.overrides = self.split_arguments(parser.parse_overrides(params_conf), self.max_batch_size)
+        sweep_dir = Path(self.config.hydra.sweep.dir)
+        sweep_dir.mkdir(parents=True, exist_ok=True)
+        OmegaConf.save(self.config, sweep_dir / "multirun.yaml")
+
+        returns: List[Sequence[JobReturn]] = []
+        failed: List[JobReturn] = []
+        initial_job_idx = 0
+        t0 = time.perf_counter()
+        while not self.is_done():
+            batch = self.get_job_batch()
+            self.validate_batch_is_legal(batch)
+            results = self.launcher.launch(batch, initial_job_idx=initial_job_idx)
+            failed.extend(r for r in results if r.status != JobStatus.COMPLETED)
+            initial_job_idx += len(batch)
+            returns.append(results)
+        if failed:
+            other = [r for r in failed if not isinstance(r._return_value, MeshsegError)]
+            if other:
+                _ = other[0].return_value  # a programming error: Hydra prints its traceback
+            lines = [f"error: job {' '.join(r.overrides or [])}: {r._return_value}" for r in failed]
+            n = sum(len(b) for b in returns)
+            sys.exit("\n".join(lines) + f"\nsweep: {len(failed)} of {n} jobs failed "
+                     f"({time.perf_counter() - t0:.0f} s); their runs are FAILED in the store, a rerun retries them")
+        return returns

@@ -1,0 +1,170 @@
+"""The tracking store under concurrency and bad settings: one-time sqlite initialisation, leases that
+keep two sweeps from running one fold twice, store checks at start, and run identity (fold ids)."""
+
+import os
+import socket
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+
+import pytest
+from mlflow import MlflowClient
+
+from meshseg.data.splits import Fold
+from meshseg.errors import TrackingError
+from meshseg.tracking import LEASE_HEARTBEAT, LEASE_OWNER, Tracker, fold_identity, store_uri
+
+from test_run import SMALL, compose_run, meshseg_run, runs, store  # noqa: F401  (store is a fixture)
+
+
+def test_processes_opening_a_new_sqlite_store_at_once_all_succeed(tmp_path):
+    """MLflow builds a new sqlite schema on first use; unlocked, a second process doing the same at the
+    same moment fails with 'duplicate column name'."""
+    start = time.time() + 4  # every process imports first, then all open the store at this instant
+    code = textwrap.dedent(f"""
+        import time
+        from meshseg.tracking import Tracker
+        time.sleep(max(0.0, {start} - time.time()))
+        t = Tracker("sqlite:///{tmp_path}/mlflow.db", "meshseg")
+        print(t.experiment_id)
+    """)
+    procs = [subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for _ in range(3)]
+    outs = [p.communicate(timeout=120) for p in procs]
+    assert [p.returncode for p in procs] == [0, 0, 0], [err[-2000:] for _, err in outs]
+    assert len({out.strip() for out, _ in outs}) == 1  # one experiment, found by all
+
+
+def _tracker(tmp_path) -> Tracker:
+    return Tracker(f"sqlite:///{tmp_path}/mlflow.db", "meshseg")
+
+
+def test_a_live_lease_keeps_the_config_and_a_dead_one_is_taken_over(tmp_path):
+    t = _tracker(tmp_path)
+    tags = {"config_hash": "abc", "fold": 0}
+    first, holder = t.claim("fold 0", tags)
+    assert first is not None and holder is None
+    second, holder = t.claim("fold 0", tags)  # this process holds it, heartbeat fresh: taken
+    assert second is None and holder.info.run_id == first
+    assert [r.info.run_id for r in t.runs()] == [first]  # the loser's run is deleted, not left RUNNING
+
+    # the same lease held by a process on another host: alive while its heartbeat is fresh ...
+    t.client.set_tag(first, LEASE_OWNER, "elsewhere:1")
+    assert t.claim("fold 0", tags)[0] is None
+    # ... dead once the heartbeat is older than the timeout: the next claim takes over, the old run KILLED
+    t.client.set_tag(first, LEASE_HEARTBEAT, f"{time.time() - 600:.0f}")
+    third, holder = t.claim("fold 0", tags)
+    assert third is not None and holder is None
+    old = t.client.get_run(first)
+    assert old.info.status == "KILLED" and old.data.tags["superseded_by"] == third
+
+
+def test_a_lease_of_a_dead_process_on_this_host_is_taken_over_at_once(tmp_path):
+    t = _tracker(tmp_path)
+    tags = {"config_hash": "abc"}
+    first, _ = t.claim("fold 0", tags)
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    t.client.set_tag(first, LEASE_OWNER, f"{socket.gethostname()}:{dead.stdout.strip()}")  # heartbeat still fresh
+    second, _ = t.claim("fold 0", tags)
+    assert second is not None and t.client.get_run(first).info.status == "KILLED"
+
+
+def test_finished_config_is_never_claimed_and_the_run_beats(tmp_path):
+    t = _tracker(tmp_path)
+    tags = {"config_hash": "abc"}
+    run_id, _ = t.claim("fold 0", tags, heartbeat_s=0.2, lease_timeout_s=5)
+    before = float(t.client.get_run(run_id).data.tags[LEASE_HEARTBEAT])
+    with t.run("fold 0", tags, {}, run_id):
+        time.sleep(1.5)
+        beat = float(t.client.get_run(run_id).data.tags[LEASE_HEARTBEAT])
+    assert beat > before  # refreshed while the fold ran
+    assert t.client.get_run(run_id).info.status == "FINISHED"
+    again, holder = t.claim("fold 0", tags)
+    assert again is None and holder.info.status == "FINISHED"
+
+
+def test_claims_racing_from_threads_leave_one_winner(tmp_path):
+    t = _tracker(tmp_path)
+    got = []
+    barrier = threading.Barrier(4)
+
+    def claim():
+        barrier.wait()
+        got.append(Tracker(t.uri, "meshseg").claim("fold 0", {"config_hash": "race"})[0])
+
+    threads = [threading.Thread(target=claim) for _ in range(4)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    winners = [g for g in got if g is not None]
+    assert len(got) == 4 and len(winners) == 1
+    assert [r.info.run_id for r in t.runs("attributes.status = 'RUNNING'")] == winners
+
+
+def test_two_sweeps_of_one_study_at_once_train_each_fold_once(store):
+    """Both sweeps start together; every fold is trained by one of them and skipped by the other."""
+    args = [sys.executable, "-m", "meshseg.run", *SMALL, "category=cup", "trainer.threads=1", "-m"]
+    from conftest import REPO
+
+    procs = [subprocess.Popen(args, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+             for _ in range(2)]
+    outs = [p.communicate(timeout=600)[0] for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], outs[0][-2000:] + outs[1][-2000:]
+    done = runs(store, "FINISHED")
+    assert sorted(int(r.data.tags["fold"]) for r in done) == [0, 1, 2, 3, 4]
+    assert len({r.data.tags["config_hash"] for r in done}) == 5
+    assert sum(o.count("skip:") for o in outs) == 5  # each fold skipped by the sweep that did not run it
+    assert runs(store, "RUNNING") == []
+    # and each sweep wrote its logs to a folder of its own, though both started within one second
+    assert len(list((store.parent / "logs" / "multirun").iterdir())) == 2
+
+
+def test_store_settings_are_checked_at_start(store):
+    with pytest.raises(TrackingError, match=r"tracking.uri=garbage://x: unknown store scheme 'garbage'"):
+        store_uri("garbage://x")
+    r = meshseg_run(*SMALL, "tracking.uri=garbage://x", "-m")
+    assert r.returncode == 1 and r.stderr.strip().endswith("'https', 'databricks']") and "Traceback" not in r.stderr
+
+    with socket.socket() as silent:  # accepts connections but never answers
+        silent.bind(("127.0.0.1", 0))
+        silent.listen()
+        uri = f"http://127.0.0.1:{silent.getsockname()[1]}"
+        t0 = time.perf_counter()
+        r = meshseg_run(*SMALL, f"tracking.uri={uri}", "fold=0", "category=cup")
+        took = time.perf_counter() - t0
+    assert r.returncode == 1 and f"error: tracking.uri={uri}: no MLflow server answers" in r.stderr, r.stderr[-2000:]
+    assert "Traceback" not in r.stderr and took < 60
+
+
+def test_run_identity_is_the_folds_meshes():
+    """The same fold index over other meshes (another split file, another dealing) is another run."""
+    cfg = compose_run()
+    _, h = fold_identity(cfg, "table", Fold(0, ("1", "2", "3"), ("4",)), "data")
+    assert h == fold_identity(cfg, "table", Fold(0, ("1", "2", "3"), ("4",)), "data")[1]
+    assert h != fold_identity(cfg, "table", Fold(0, ("1", "2", "4"), ("3",)), "data")[1]
+    assert h != fold_identity(cfg, "table", Fold(0, ("1", "2"), ("4",)), "data")[1]
+    assert h != fold_identity(cfg, "table", Fold(0, ("1", "2", "3"), ("4",)), "other data")[1]
+    assert h != fold_identity(cfg, "cup", Fold(0, ("1", "2", "3"), ("4",)), "data")[1]
+    moved = compose_run("split=fixed", "split.file=/elsewhere.txt")  # the file's name alone is no knob
+    assert fold_identity(moved, "table", Fold(0, ("1",), ("2",)), "d")[1] == fold_identity(
+        compose_run("split=fixed"), "table", Fold(0, ("1",), ("2",)), "d")[1]
+
+
+def test_programming_errors_keep_their_traceback(store, tmp_path):
+    """A user error is one line; anything else is a bug and shows where it happened."""
+    hook = tmp_path / "sitecustomize.py"  # makes the mesh metric raise a TypeError inside a real run
+    hook.write_text("import meshseg.metrics as m\n"
+                    "def boom(*a, **k):\n    raise TypeError('boom from the metric')\n"
+                    "m.mesh_scores = boom\n")
+    env = {**os.environ, "PYTHONPATH": f"{tmp_path}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+    from conftest import REPO
+
+    r = subprocess.run([sys.executable, "-m", "meshseg.run", *SMALL, "category=cup", "fold=0", "tracking.renders=0"],
+                       cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 1 and "Traceback" in r.stderr and "TypeError: boom from the metric" in r.stderr
+    assert "error: boom" not in r.stderr
+    (failed,) = runs(store, "FAILED")
+    assert "TypeError: boom from the metric" in failed.data.tags["error"]
