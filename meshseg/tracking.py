@@ -359,18 +359,25 @@ class Tracker:
         _retry(lambda: self.client.log_batch(run_id, metrics=items), "log metrics")
 
     def log_fold(self, run_id: str, config_yaml: str, rows: list[dict], predictions: dict[str, np.ndarray]) -> None:
-        """Artifacts: config.yaml, per_mesh.csv, predictions.npz (labels_<mesh>, labels_raw_<mesh>,
-        probs_<mesh> as float16)."""
+        """The fold's record as `FoldRecord` names it: the config, the per-mesh table (its columns in
+        FoldRecord's order) and the per-face predictions, each array cast to its FoldRecord dtype."""
+        R = FoldRecord
         with tempfile.TemporaryDirectory() as tmp:
             d = Path(tmp)
-            (d / "config.yaml").write_text(config_yaml)
+            (d / R.CONFIG).write_text(config_yaml)
             buf = io.StringIO()
-            writer = csv.DictWriter(buf, fieldnames=list(rows[0]))
+            writer = csv.DictWriter(buf, fieldnames=list(R.PER_MESH_COLUMNS))
             writer.writeheader()
             writer.writerows(rows)
-            (d / "per_mesh.csv").write_text(buf.getvalue())
-            np.savez_compressed(d / "predictions.npz", **predictions)
-            for name in ("config.yaml", "per_mesh.csv", "predictions.npz"):
+            (d / R.PER_MESH).write_text(buf.getvalue())
+            arrays = {}
+            for key, a in predictions.items():
+                prefix = max((p for p in R.PREDICTION_ARRAYS if key.startswith(p)), key=len, default=None)
+                if prefix is None:
+                    raise KeyError(f"prediction array {key!r} is not in the fold record: {list(R.PREDICTION_ARRAYS)}")
+                arrays[key] = np.asarray(a).astype(R.PREDICTION_ARRAYS[prefix], copy=False)
+            np.savez_compressed(d / R.PREDICTIONS, **arrays)
+            for name in (R.CONFIG, R.PER_MESH, R.PREDICTIONS):
                 self.client.log_artifact(run_id, str(d / name))
 
     def log_pictures(self, run_id: str, meshes, labels, rows: list[dict], n: int) -> None:

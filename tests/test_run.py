@@ -107,6 +107,25 @@ def test_bad_values_fail_at_once_listing_what_is_allowed(store):
     assert r.returncode == 1 and "error: fold=9 is out of range: split 5fold of table has folds 0..4" in r.stderr
 
 
+@pytest.mark.parametrize("override, message", [
+    ("branches=5", "error: branches=5 is not allowed: choose one of [1, 2, 3, 4]"),
+    ("fold=9", "error: fold=9 is out of range: split 5fold of table has folds 0..4"),
+    ("category=chair", "has no category 'chair'; it has ['table', 'cup', 'figure']"),
+    ("budget.epochs=0", "error: budget smoke: epochs and batch_size must be >= 1"),
+    ("tracking.uri=garbage://x", "error: tracking.uri=garbage://x: unknown store scheme 'garbage'"),
+    ("refine.lam=-1", "refine.lam=-1"),
+    ("+modle=cnn1d", "error: unknown setting 'modle' (did you mean model?)"),
+    ("modle=cnn1d", "error: unknown setting 'modle' (did you mean model?)"),
+])
+def test_bad_values_under_m_get_one_line_before_any_work(store, override, message):
+    """A sweep checks every job's settings before the first starts: one `error:` line, no traceback,
+    nothing in the store (`refine.lam=-1` used to be refused only after the fold had trained)."""
+    r = meshseg_run(*SMALL, override, "-m", timeout=120)
+    assert r.returncode == 1 and message in r.stderr, r.stderr[-2000:]
+    assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert not (store / "mlflow.db").exists() or runs(store) == []
+
+
 def test_config_hash_ignores_paths_and_sees_knobs():
     cfg = {"paths": {"cache_dir": "a"}, "branches": 3, "model": {"hidden": 172}}
     h = config_hash(cfg, ["paths"], {"data_hash": "x"})
