@@ -8,7 +8,8 @@ write its report.
 Every (column, set) with folds missing becomes one `python -m meshseg.run -m` sweep over exactly those
 folds (the same Hydra app, sweeper and launcher config as a hand-typed sweep: launcher overrides pass
 through). Runs that exist are never launched again; an interrupted reproduce, rerun, does the rest.
-Cells no run can fill (a category the dataset lacks) are listed and left alone.
+Cells no run can fill (a category the dataset lacks) are listed and left alone. Settings: conf/reproduce.yaml
+(conf/report.yaml's, plus report.dry_run).
 """
 
 from __future__ import annotations
@@ -16,70 +17,104 @@ from __future__ import annotations
 import logging
 import subprocess
 import sys
+from dataclasses import dataclass
+from pathlib import Path
 
-from meshseg.data.mesh import MeshDataError
-from meshseg.report import build, load_manifest, publish, split_overrides, summary
+import hydra
+from omegaconf import DictConfig
+
+from meshseg import CONF_DIR
+from meshseg.errors import MeshsegError
+from meshseg.report.app import ERROR_EXIT, run_app
+from meshseg.report.config import check_config, compose_config
+from meshseg.report.manifest import load_manifest
+from meshseg.report.publish import build, publish, summary
 from meshseg.report.table import Table
 
 log = logging.getLogger("meshseg.reproduce")
 
 
-def missing_sweeps(table: Table) -> list[list[str]]:
-    """One override list per incomplete (column, set): its overrides, its category, its missing folds."""
-    sweeps = []
-    for row in table.rows:
-        if row.kind != "set":
-            continue
-        for c in row.cells:
-            if c.status == "incomplete":
-                sweeps.append([*c.overrides, f"category={c.category}", "fold=" + ",".join(map(str, c.missing))])
-    return sweeps
+@dataclass(frozen=True)
+class MissingCell:
+    """An incomplete (column, set) and what `meshseg.run` needs to make its missing fold runs."""
+
+    row: str                     # the set's row label
+    column: str                  # the column's key
+    overrides: tuple[str, ...]   # the cell's run overrides (manifest, group, column, then the command line's)
+    category: str                # the dataset's own name for the set
+    folds: tuple[int, ...]       # the folds without a FINISHED run
+
+    def sweep(self) -> list[str]:
+        """The `python -m meshseg.run -m` arguments that make exactly the missing folds."""
+        return [*self.overrides, f"category={self.category}", "fold=" + ",".join(map(str, self.folds))]
 
 
-def reproduce(manifest_path, args=()) -> tuple[Table, list[list[str]], list[list[str]], tuple | None]:
-    """Launch what is missing (unless report.dry_run), then build, write and log the report.
-    Returns the final table, the sweeps launched, those that failed, and (files, report run id)
-    or None for a dry run."""
-    settings, run_overrides = split_overrides(args)
-    manifest = load_manifest(manifest_path)
-    table = build(manifest, run_overrides, settings)
+def missing_cells(table: Table) -> list[MissingCell]:
+    """Every incomplete (column, set) of the table, in table order."""
+    return [MissingCell(row.label, c.column.key, tuple(c.overrides), c.category, tuple(c.missing))
+            for row in table.rows if row.kind == "set" for c in row.cells if c.status == "incomplete"]
+
+
+@dataclass
+class Outcome:
+    """What a reproduce did: the final table, the cells it launched (or would launch), those whose sweep
+    failed, and the report's files and run id (None for a dry run)."""
+
+    table: Table
+    launched: list[MissingCell]
+    failed: list[MissingCell]
+    published: tuple[list[Path], str | None] | None
+
+
+def reproduce_from_config(cfg: DictConfig) -> Outcome:
+    """Launch what is missing (unless report.dry_run), then build, write and log the report."""
+    check_config(cfg)
+    manifest = load_manifest(cfg.manifest)
+    table = build(manifest, cfg)
     for row in table.rows:
         for c in row.cells:
             if row.kind == "set" and c.status == "unavailable":
                 log.warning("cannot run %s / %s: %s", row.label, c.column.key, c.problem)
-    sweeps = missing_sweeps(table)
-    folds = sum(len(s[-1].split(",")) for s in sweeps)
-    log.info("%s: %d cell(s) lack %d fold run(s)", manifest.name, len(sweeps), folds)
-    if settings.dry_run:
-        for i, over in enumerate(sweeps, 1):
-            log.info("[%d/%d] would run: -m meshseg.run -m %s", i, len(sweeps), " ".join(over))
-        return table, sweeps, [], None
+    cells = missing_cells(table)
+    log.info("%s: %d cell(s) lack %d fold run(s)", manifest.name, len(cells), sum(len(c.folds) for c in cells))
+    if cfg.report.dry_run:
+        for i, cell in enumerate(cells, 1):
+            log.info("[%d/%d] would run: python -m meshseg.run -m %s", i, len(cells), " ".join(cell.sweep()))
+        return Outcome(table, cells, [], None)
     failed = []
-    for i, over in enumerate(sweeps, 1):
-        cmd = [sys.executable, "-m", "meshseg.run", "-m", *over]
-        log.info("[%d/%d] %s", i, len(sweeps), " ".join(cmd[1:]))
+    for i, cell in enumerate(cells, 1):
+        cmd = [sys.executable, "-m", "meshseg.run", "-m", *cell.sweep()]
+        log.info("[%d/%d] %s", i, len(cells), " ".join(cmd[1:]))
         if subprocess.run(cmd).returncode != 0:
-            failed.append(over)
-            log.error("sweep failed (its runs are marked FAILED in the store): %s", " ".join(over))
-    if sweeps:
-        table = build(manifest, run_overrides, settings)
-    return table, sweeps, failed, publish(table, settings)
+            failed.append(cell)
+            log.error("sweep failed (its runs are marked FAILED in the store): %s", " ".join(cell.sweep()))
+    if cells:
+        table = build(manifest, cfg)
+    return Outcome(table, cells, failed, publish(table, cfg.report))
 
 
-def main(argv: list[str]) -> int:
-    if not argv or argv[0] in ("-h", "--help"):
-        print(__doc__.strip())
-        return 0 if argv else 2
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
+def reproduce(manifest_path, args=()) -> Outcome:
+    """The command as a function: `args` as on the command line after MANIFEST."""
+    return reproduce_from_config(compose_config("reproduce", manifest_path, args))
+
+
+@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="reproduce")
+def _reproduce_app(cfg: DictConfig) -> None:
     try:
-        table, _, failed, published = reproduce(argv[0], argv[1:])
-    except (MeshDataError, ValueError) as e:
+        outcome = reproduce_from_config(cfg)
+    except MeshsegError as e:
         print(f"error: {e}", file=sys.stderr)
-        return 2
-    if published:
-        print(summary(table, *published))
-    return 1 if failed else 0
+        sys.exit(ERROR_EXIT)
+    if outcome.published:
+        print(summary(outcome.table, *outcome.published))
+    if outcome.failed:
+        sys.exit(1)
+
+
+def main(argv=None) -> None:
+    """`python -m meshseg.reproduce`."""
+    run_app(sys.argv[1:] if argv is None else argv, _reproduce_app, "reproduce", __doc__)
 
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))
+    main()

@@ -6,10 +6,10 @@ from pathlib import Path
 
 import pytest
 import yaml
+from conftest import REPO, SPLIT_FILE, require
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from conftest import REPO, SPLIT_FILE, require
 from meshseg import CONF_DIR
 from meshseg.data.datasets import normalise_name
 
@@ -238,7 +238,8 @@ def test_ablation_agd_is_table2_3b():
     a, t2 = load("ablation_graphcut"), load("table2_psb_5fold")
     keys = [c["key"] for c in a["columns"]]
     assert keys == ["none", "classic", "AGD"]
-    assert [c["overrides"][-1] for c in a["columns"]] == ["refine=none", "refine=graphcut_classic", "refine=graphcut_agd"]
+    refines = [c["overrides"][-1] for c in a["columns"]]
+    assert refines == ["refine=none", "refine=graphcut_classic", "refine=graphcut_agd"]
     j = [c["key"] for c in t2["columns"]].index("3B")
     assert a["overrides"] == t2["overrides"]
     (ga,), (gt,) = a["groups"], t2["groups"]

@@ -15,6 +15,8 @@ from pathlib import Path
 
 import pytest
 
+from meshseg.tracking import FoldRecord
+
 
 def free_port() -> int:
     with socket.socket() as s:
@@ -61,7 +63,8 @@ def mlflow_ui(store: Path):
             except OSError:
                 pass
             if proc.poll() is not None or time.time() > deadline:
-                pytest.fail(f"mlflow ui did not come up: {proc.stderr.read().decode()[-2000:] if proc.poll() is not None else 'timeout'}")
+                why = proc.stderr.read().decode()[-2000:] if proc.poll() is not None else "timeout"
+                pytest.fail(f"mlflow ui did not come up: {why}")
             time.sleep(0.5)
         yield base, proc, port
     finally:
@@ -77,18 +80,20 @@ def mlflow_ui(store: Path):
 def test_mlflow_ui_serves_the_runs_and_their_pictures_then_stops(smoke_store):
     with mlflow_ui(smoke_store) as (base, proc, port):
         exp = get(base, "/api/2.0/mlflow/experiments/get-by-name", experiment_name="meshseg")["experiment"]
-        runs = post(base, "/api/2.0/mlflow/runs/search", {"experiment_ids": [exp["experiment_id"]], "max_results": 100})["runs"]
+        search = {"experiment_ids": [exp["experiment_id"]], "max_results": 100}
+        runs = post(base, "/api/2.0/mlflow/runs/search", search)["runs"]
         finished = [r for r in runs if r["info"]["status"] == "FINISHED"]
         assert len(finished) == 18
         for run in finished[:3]:
             rid = run["info"]["run_id"]
             top = {f["path"] for f in get(base, "/api/2.0/mlflow/artifacts/list", run_id=rid)["files"]}
-            assert {"confusion.png", "per_mesh.csv", "predictions.npz", "config.yaml", "renders"} <= top
-            renders = [f["path"] for f in get(base, "/api/2.0/mlflow/artifacts/list", run_id=rid, path="renders")["files"]]
+            assert {"confusion.png", FoldRecord.PER_MESH, FoldRecord.PREDICTIONS, FoldRecord.CONFIG, "renders"} <= top
+            listed = get(base, "/api/2.0/mlflow/artifacts/list", run_id=rid, path="renders")["files"]
+            renders = [f["path"] for f in listed]
             assert renders and all(p.startswith("renders/mesh_") and p.endswith(".png") for p in renders)
             assert get(base, "/get-artifact", path=renders[0], run_uuid=rid)[:8] == b"\x89PNG\r\n\x1a\n"
         tags = {t["key"]: t["value"] for t in finished[0]["data"]["tags"]}
-        assert {"model", "category", "fold", "budget", "config_hash"} <= set(tags)
+        assert set(FoldRecord.TAGS) <= set(tags)
     assert proc.returncode is not None and not group_alive(proc.pid)
     with pytest.raises(OSError):
         socket.create_connection(("127.0.0.1", port), timeout=2).close()

@@ -5,9 +5,8 @@ import re
 
 import nbformat
 import yaml
-from nbclient import NotebookClient
-
 from conftest import REPO, SMOKE
+from nbclient import NotebookClient
 
 NOTEBOOKS = REPO / "notebooks"
 
@@ -25,7 +24,8 @@ def outputs(nb) -> str:
     parts = []
     for c in nb.cells:
         for o in c.get("outputs", []):
-            parts.append(o.get("text", "") + "".join(str(v) for k, v in o.get("data", {}).items() if k.startswith("text/")))
+            texts = [str(v) for k, v in o.get("data", {}).items() if k.startswith("text/")]
+            parts.append(o.get("text", "") + "".join(texts))
             parts += [k for k in o.get("data", {}) if k.startswith("image/")]
     return "\n".join(parts)
 
@@ -46,8 +46,10 @@ def test_compare_published_runs_on_the_smoke_store(smoke_store, tmp_path, cache_
 
 
 def test_inspect_run_runs_on_the_smoke_store(smoke_store, cache_dir, monkeypatch):
-    nb = execute("inspect_run.ipynb", {"MESHSEG_TRACKING_URI": f"sqlite:///{smoke_store}/mlflow.db", "MESHSEG_RUN_ID": "",
+    nb = execute("inspect_run.ipynb", {"MESHSEG_TRACKING_URI": f"sqlite:///{smoke_store}/mlflow.db",
+                                       "MESHSEG_RUN_ID": "",
                                        "MESHSEG_CACHE_DIR": str(cache_dir)}, monkeypatch)
     text = outputs(nb)
     assert text.count("image/png") >= 3                # per-mesh bars, render, confusion matrix
     assert "confusion.png" in text and "renders/mesh_" in text and "test_acc" in text
+    assert "data_hash" in text and "config_hash" in text   # every tag FoldRecord.TAGS names

@@ -1,9 +1,11 @@
 """meshseg.report and meshseg.reproduce: the statistics on hand-computed cases, manifest errors, and
 on a store made by a budget=smoke sweep (conftest.smoke_store): every format, numbers equal to the
 runs' own per-mesh tables, a deleted fold shown as incomplete and refilled by reproduce, the report
-logged as a run; and the published numbers the report prints for every paper table, against the LaTeX."""
+logged as a run; and the published numbers the report prints for every paper table, against the LaTeX.
+Also the command line (Hydra apps: report.* settings, run overrides, errors) and per-cell bootstrap seeds."""
 
 import csv
+import re
 import shutil
 import subprocess
 import sys
@@ -12,20 +14,26 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from mlflow import MlflowClient
-
 from conftest import PSB_ARCHIVE, REPO, SMOKE, require, smoke_env
-from meshseg.report import ManifestError, load_manifest, report, split_overrides
-from meshseg.report.manifest import Column
-from meshseg.report.table import Cell, _averages, bootstrap_ci
-from meshseg.report.write import FILES
+from mlflow import MlflowClient
 from test_manifests import PAPER_TABLES, paper_tex, parse_tabulars
+
+from meshseg.errors import ConfigError
+from meshseg.report import ManifestError, collect, load_manifest, report
+from meshseg.report.app import main as report_main
+from meshseg.report.config import compose_config, run_overrides, split_argv
+from meshseg.report.manifest import Column
+from meshseg.report.table import Cell, Row, Table, _averages, bootstrap_ci, cell_rng
+from meshseg.report.write import FILES
+from meshseg.reproduce import MissingCell, missing_cells
+from meshseg.reproduce import main as reproduce_main
 
 SYNTH = REPO / "experiments/synthetic.yaml"
 
 
-def cli(module: str, *args, env: dict) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", module, *args], cwd=REPO, env=env, capture_output=True, text=True, timeout=900)
+def cli(module: str, *args, env: dict, cwd: Path = REPO) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", module, *args], cwd=cwd, env=env, capture_output=True, text=True,
+                          timeout=900)
 
 
 def read_csv(path: Path) -> list[dict]:
@@ -67,21 +75,44 @@ def test_bootstrap_interval_brackets_the_mean_and_narrows_with_more_meshes():
 
 def test_bootstrap_of_sets_resamples_each_set_and_weighs_sets_equally():
     # set means 100 and 50 -> 75 exactly, whatever is resampled (the pooled mean would be 87.5)
-    assert bootstrap_ci([np.full(3, 100.0), np.full(1, 50.0)], 300, 0.95, np.random.default_rng(0)) == pytest.approx((75, 75))
+    ci = bootstrap_ci([np.full(3, 100.0), np.full(1, 50.0)], 300, 0.95, np.random.default_rng(0))
+    assert ci == pytest.approx((75, 75))
 
 
 def test_average_row_is_the_mean_of_set_values_and_needs_every_set():
     a = Cell(COL, None, accs=np.array([100.0, 100.0, 100.0, 100.0]), folds=2, value=100.0)
     b = Cell(COL, None, accs=np.array([50.0]), folds=1, value=50.0)
     manifest = type("M", (), {"columns": (COL,)})()
-    (avg,) = _averages(manifest, [[a], [b]], (80.0,), 200, 0.95, 0, 0)
+    (avg,) = _averages(manifest, [[a], [b]], (80.0,), 200, 0.95, 0, ("average", "g", "Average"))
     assert avg.status == "ok" and avg.value == pytest.approx(75.0) and avg.delta == pytest.approx(-5.0)
     assert avg.n_meshes == 5
     b2 = Cell(COL, None, folds=5, missing=(1, 3))
     assert b2.status == "incomplete" and b2.why() == "2 of 5 folds missing" and b2.value is None
-    (avg2,) = _averages(manifest, [[a], [b2]], (80.0,), 200, 0.95, 0, 0)
+    (avg2,) = _averages(manifest, [[a], [b2]], (80.0,), 200, 0.95, 0, ("average", "g", "Average"))
     assert avg2.status == "incomplete" and avg2.value is None and avg2.why() == "1 of 2 sets not complete"
     assert Cell(Column("p", "P", None), 93.0).status == "published"
+
+
+def test_a_cells_generator_is_its_identitys():
+    """Seeded by the report seed and the cell's identity only: the same cell draws the same numbers."""
+    draw = lambda seed, *identity: cell_rng(seed, *identity).integers(0, 2**31, 4).tolist()
+    a = draw(0, "set", "PSB", "Teddy", "3B")
+    assert a == draw(0, "set", "PSB", "Teddy", "3B")
+    others = [draw(1, "set", "PSB", "Teddy", "3B"), draw(0, "set", "PSB", "Teddy", "1B"),
+              draw(0, "set", "PSB", "Cup", "3B"), draw(0, "average", "PSB", "Teddy", "3B"),
+              draw(0, "set", "COSEG", "Teddy", "3B")]
+    assert all(o != a for o in others) and len({tuple(o) for o in others}) == len(others)
+
+
+def test_missing_cells_are_structured_and_make_their_sweeps():
+    gap = Cell(COL, None, folds=5, missing=(1, 3), overrides=("dataset=psb", "model=cnn1d", "budget=cpu"),
+               category="Teddy")
+    ok = Cell(COL, None, accs=np.array([90.0]), folds=1)
+    rows = [Row("Teddy", "set", "PSB", [gap]), Row("Cup", "set", "PSB", [ok]),
+            Row("Average", "average", "PSB", [Cell(COL, None, members=[gap, ok])])]
+    (m,) = missing_cells(Table(None, rows, ("budget=cpu",), "acc", 0.95))
+    assert m == MissingCell("Teddy", "a", ("dataset=psb", "model=cnn1d", "budget=cpu"), "Teddy", (1, 3))
+    assert m.sweep() == ["dataset=psb", "model=cnn1d", "budget=cpu", "category=Teddy", "fold=1,3"]
 
 
 # --- manifests and settings -----------------------------------------------------------------------
@@ -106,13 +137,115 @@ def test_a_bad_manifest_names_the_file_and_the_problem(tmp_path, edit, problem):
 
 
 def test_report_settings_are_split_from_run_overrides():
-    settings, run = split_overrides(["budget=cpu", "report.sets=[Teddy]", "report.n_boot=10", "tracking.uri=x"])
-    assert list(settings.sets) == ["Teddy"] and settings.n_boot == 10 and run == ["budget=cpu", "tracking.uri=x"]
-    with pytest.raises(ValueError, match="unknown report setting 'nope'"):
-        split_overrides(["report.nope=1"])
-    with pytest.raises(ValueError, match="report.metric=f1 is not allowed"):
-        split_overrides(["report.metric=f1"])
-    assert split_overrides(["report.metric=acc_raw"])[0].metric == "acc_raw"
+    args = ["budget=cpu", "report.sets=[Teddy]", "report.n_boot=10", "tracking.uri=x", "hydra/launcher=joblib"]
+    app, run = split_argv(["m.yaml", *args])
+    assert app == ["manifest=m.yaml", "report.sets=[Teddy]", "report.n_boot=10", "hydra/launcher=joblib"]
+    assert run == ["budget=cpu", "tracking.uri=x", "hydra/launcher=joblib"]   # launcher: for reproduce's sweeps
+    cfg = compose_config("report", "m.yaml", args)
+    assert cfg.manifest == "m.yaml" and list(cfg.report.sets) == ["Teddy"] and cfg.report.n_boot == 10
+    assert run_overrides(cfg) == run and cfg.report.metric == "acc" and "dry_run" not in cfg.report
+    assert compose_config("report", "m.yaml", ["report.metric=acc_raw"]).report.metric == "acc_raw"
+    assert compose_config("reproduce", "m.yaml", ["report.dry_run=true"]).report.dry_run is True
+    with pytest.raises(ConfigError, match="unknown report setting 'nope'.*report.metric, report.n_boot"):
+        compose_config("report", "m.yaml", ["report.nope=1"])
+    with pytest.raises(ConfigError, match="unknown report setting 'dry_run'"):   # reproduce's alone
+        compose_config("report", "m.yaml", ["report.dry_run=true"])
+
+
+def test_run_overrides_reach_the_runs_verbatim():
+    """Whatever a run override holds (quotes, backslashes, brackets, interpolations) arrives unchanged."""
+    odd = ["a=it's", "b=c\\", "d=\\'e", "features.groups=[curvature,pca,gc]", "tracking.uri=sqlite:////x y/m.db",
+           "hydra.run.dir=${paths.log_dir}/x", "e=\"q\""]
+    assert run_overrides(compose_config("report", "m.yaml", odd)) == odd
+
+
+@pytest.mark.parametrize("args, problem", [
+    (["report.metric=f1"],
+     r"report.metric=f1 is not allowed: choose acc \(after refinement\), acc_raw \(before refinement\)$"),
+    (["report.n_boot=0"], "report.n_boot=0 must be an integer >= 1"),
+    (["report.level=95"], "report.level=95 must be a number between 0 and 1"),
+    (["report.sets=Teddy"], "report.sets=Teddy must be a list"),
+])
+def test_bad_report_settings_are_refused(args, problem):
+    from meshseg.report.config import check_config
+
+    with pytest.raises(ConfigError, match=problem):
+        check_config(compose_config("report", "m.yaml", args))
+
+
+# --- errors: the user's as one line, the program's with their traceback ------------------------------------
+
+def in_process(main, argv, tmp_path, monkeypatch):
+    """Run a command's main() here (Hydra's logging left alone, its folder under tmp_path); its exit status."""
+    monkeypatch.setenv("MESHSEG_LOG_DIR", str(tmp_path / "logs"))
+    try:
+        main([*argv, "hydra/job_logging=none", "hydra/hydra_logging=none"])
+    except SystemExit as e:
+        return e.code
+    return 0
+
+
+@pytest.mark.parametrize("main", [report_main, reproduce_main], ids=["report", "reproduce"])
+@pytest.mark.parametrize("args, problem", [
+    ([], "experiments/absent.yaml: no such manifest file"),
+    (["report.nope=1"], "unknown report setting 'nope'"),
+    (["report.metric=f1"], "report.metric=f1 is not allowed"),
+])
+def test_a_user_error_is_one_error_line(main, args, problem, tmp_path, monkeypatch, capsys):
+    assert in_process(main, ["experiments/absent.yaml", *args], tmp_path, monkeypatch) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and len(err.splitlines()) == 1 and problem in err, err
+
+
+def test_a_run_override_or_a_column_that_does_not_compose_is_named(tmp_path, monkeypatch, capsys):
+    assert in_process(report_main, [str(SYNTH), "budgte=cpu"], tmp_path, monkeypatch) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: run overrides budgte=cpu hydra/job_logging=none hydra/hydra_logging=none do not "
+                          f"apply to {SYNTH} group synthetic, column 3B: Could not override 'budgte'.")
+    assert len(err.splitlines()) == 1
+    doc = yaml.safe_load(SYNTH.read_text())
+    doc["columns"][1]["overrides"] = ["model=cnn9"]
+    (tmp_path / "synthetic.yaml").write_text(yaml.safe_dump(doc))
+    with pytest.raises(ManifestError, match=r"synthetic.yaml: group synthetic, column 1B: .*cnn9"):
+        report(tmp_path / "synthetic.yaml", ["budget=smoke", "report.log=false"])
+    with pytest.raises(ConfigError, match=r"report.sets: \['Teddy'\] name no set of synthetic; its sets are "
+                                          r"Table, Cup, Figure$"):
+        report(SYNTH, ["report.sets=[Cup,Teddy]", "report.log=false"])
+
+
+@pytest.mark.parametrize("main", [report_main, reproduce_main], ids=["report", "reproduce"])
+@pytest.mark.parametrize("exc", [TypeError, ValueError])
+def test_a_programming_error_propagates_with_its_traceback(main, exc, tmp_path, monkeypatch, capsys):
+    """A bug (here: the YAML reader raising) is no user error: not `error: ...`, but the exception itself
+    (HYDRA_FULL_ERROR=1), or its traceback and exit status 1 (Hydra's own report)."""
+    def broken(*a, **k):
+        raise exc("bug in the report")
+
+    monkeypatch.setattr("meshseg.report.manifest.yaml.safe_load", broken)
+    monkeypatch.setenv("HYDRA_FULL_ERROR", "1")
+    with pytest.raises(exc, match="bug in the report"):
+        in_process(main, [str(SYNTH)], tmp_path, monkeypatch)
+    monkeypatch.delenv("HYDRA_FULL_ERROR")
+    assert in_process(main, [str(SYNTH)], tmp_path, monkeypatch) == 1
+    err = capsys.readouterr().err
+    assert "Traceback" in err and f"{exc.__name__}: bug in the report" in err and "error: " not in err
+
+
+def test_a_damaged_run_is_a_user_error_naming_the_run(smoke_store, tmp_path, cache_dir, monkeypatch, capsys):
+    """A FINISHED run whose per-mesh table cannot be read stops the report with one line naming the run."""
+    for k, v in smoke_env(smoke_store.parent, cache_dir).items():
+        monkeypatch.setenv(k, v)
+
+    def gone(self, run_id, path, dst_path=None):
+        raise OSError(f"{path} gone")
+
+    monkeypatch.setattr(MlflowClient, "download_artifacts", gone)
+    assert in_process(report_main, [str(SYNTH), *SMOKE, "report.log=false", f"report.out_dir={tmp_path}"],
+                      tmp_path, monkeypatch) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert re.fullmatch(r"error: run \w+ \(.+\): cannot read acc from per_mesh.csv: OSError: per_mesh.csv gone",
+                        err), err
 
 
 # --- on the smoke store ---------------------------------------------------------------------------
@@ -130,13 +263,18 @@ def mesh_mean(store: Path, tags: dict) -> float:
 
 
 def test_report_writes_every_format_from_the_runs_and_logs_itself(smoke_store, tmp_path, cache_dir):
-    env = smoke_env(smoke_store.parent, cache_dir)
-    r = cli("meshseg.report", str(SYNTH), *SMOKE, f"report.out_dir={tmp_path}", env=env)
+    env = {**smoke_env(smoke_store.parent, cache_dir), "MESHSEG_LOG_DIR": str(tmp_path / "logs")}
+    (tmp_path / "cwd").mkdir()
+    r = cli("meshseg.report", str(SYNTH), *SMOKE, f"report.out_dir={tmp_path}", env=env, cwd=tmp_path / "cwd")
     assert r.returncode == 0, r.stderr[-3000:]
+    assert list((tmp_path / "cwd").iterdir()) == []      # Hydra's folder is under paths.log_dir, not the cwd
+    (logs,) = (tmp_path / "logs/report").iterdir()
+    assert (logs / ".hydra/overrides.yaml").is_file() and (logs / "report.log").is_file()
     out = tmp_path / "synthetic"
     assert all((out / f).stat().st_size > 0 for f in FILES)
     rows = read_csv(out / "table.csv")
-    columns = {"3B": {"model": "cnn1d", "branches": "3"}, "1B": {"model": "cnn1d", "branches": "1"}, "rf": {"model": "rf"}}
+    columns = {"3B": {"model": "cnn1d", "branches": "3"}, "1B": {"model": "cnn1d", "branches": "1"},
+               "rf": {"model": "rf"}}
     md = (out / "table.md").read_text()
     for key, tags in columns.items():
         values = []
@@ -161,8 +299,23 @@ def test_report_writes_every_format_from_the_runs_and_logs_itself(smoke_store, t
     assert logged.info.status == "FINISHED" and logged.info.run_id in r.stdout
     client = MlflowClient(f"sqlite:///{smoke_store}/mlflow.db")
     assert {a.path for a in client.list_artifacts(logged.info.run_id)} == set(FILES)
-    assert logged.data.metrics["Average.3B"] == pytest.approx(float(cell(rows, "Average", "3B")["reproduced"]), abs=1e-3)
+    average_3b = float(cell(rows, "Average", "3B")["reproduced"])
+    assert logged.data.metrics["Average.3B"] == pytest.approx(average_3b, abs=1e-3)
     assert logged.data.metrics["cells_ok"] == 12
+
+
+def test_a_cells_interval_does_not_depend_on_the_other_rows(smoke_store, cache_dir, monkeypatch):
+    """Cup's intervals are the same in the full table and with report.sets=[Cup]; another seed moves them."""
+    for k, v in smoke_env(smoke_store.parent, cache_dir).items():
+        monkeypatch.setenv(k, v)
+    manifest = load_manifest(SYNTH)
+    cis = lambda table: {(r.label, c.column.key): c.ci for r in table.rows for c in r.cells}
+    full = cis(collect(manifest, SMOKE, n_boot=300))
+    cup = cis(collect(manifest, SMOKE, n_boot=300, sets=["Cup"]))
+    reseeded = cis(collect(manifest, SMOKE, n_boot=300, seed=1, sets=["Cup"]))
+    assert set(cup) == {("Cup", k) for k in ("3B", "1B", "rf")} and len(full) == 12
+    assert all(cup[k] == full[k] and cup[k][0] < cup[k][1] for k in cup)
+    assert all(reseeded[k] != cup[k] for k in cup)
 
 
 def test_published_numbers_give_deltas(smoke_store, tmp_path, cache_dir, monkeypatch):
@@ -196,12 +349,14 @@ def test_a_deleted_fold_is_incomplete_and_reproduce_launches_only_it(smoke_store
     env = smoke_env(tmp_path, cache_dir)
     args = [str(SYNTH), *SMOKE, f"report.out_dir={tmp_path / 'reports'}"]
     before = float(cell(read_csv(smoke_report(tmp_path, env, args)), "Cup", "rf")["reproduced"])
-    (victim,) = runs_of(tmp_path / "mlruns", filter_string="tags.model = 'rf' and tags.category = 'cup' and tags.fold = '1'")
+    (victim,) = runs_of(tmp_path / "mlruns",
+                        filter_string="tags.model = 'rf' and tags.category = 'cup' and tags.fold = '1'")
     MlflowClient(f"sqlite:///{tmp_path}/mlruns/mlflow.db").delete_run(victim.info.run_id)
 
     rows = read_csv(smoke_report(tmp_path, env, args))
     c, avg = cell(rows, "Cup", "rf"), cell(rows, "Average", "rf")
-    assert (c["status"], c["reproduced"], c["why"], c["folds_missing"]) == ("incomplete", "", "1 of 2 folds missing", "1")
+    assert (c["status"], c["reproduced"], c["why"], c["folds_missing"]) == ("incomplete", "", "1 of 2 folds missing",
+                                                                           "1")
     assert (avg["status"], avg["reproduced"], avg["why"]) == ("incomplete", "", "1 of 3 sets not complete")
     assert cell(rows, "Cup", "3B")["status"] == "ok"
     md = (tmp_path / "reports/synthetic/table.md").read_text()
@@ -245,8 +400,10 @@ def test_the_report_prints_the_papers_numbers(stem, tmp_path, cache_dir, monkeyp
     paper = [row for t in parse_tabulars(paper_tex(), PAPER_TABLES[stem]) for row in t]
     extra = 1 if stem == "table4_fixed_splits" else 0          # Table 4's "Testing Meshes" column
     assert [(k[1], v) for k, v in printed.items()] == [(name, values[extra:]) for name, values in paper]
-    assert {r["status"] for r in rows} <= {"incomplete", "unavailable", "published"} and not any(r["reproduced"] for r in rows)
+    assert {r["status"] for r in rows} <= {"incomplete", "unavailable", "published"}
+    assert not any(r["reproduced"] for r in rows)
     md = (tmp_path / stem / "table.md").read_text()
     name, values = paper[0]
     first = next(line for line in md.splitlines() if line.startswith(f"| {name} |"))
-    assert all(f"/ {v:.2f}" in first or f"| {v:.2f}" in first or f"{v:.2f} |" in first for v in values[extra:] if v is not None)
+    assert all(f"/ {v:.2f}" in first or f"| {v:.2f}" in first or f"{v:.2f} |" in first
+               for v in values[extra:] if v is not None)

@@ -72,7 +72,8 @@ def _numbers(value, n: int, path, where: str) -> tuple[float | None, ...]:
     if value is None:
         return (None,) * n
     if not isinstance(value, list) or len(value) != n:
-        raise ManifestError(path, f"{where}: expected a list of {n} numbers (one per column, null for none), got {value!r}")
+        raise ManifestError(path, f"{where}: expected a list of {n} numbers (one per column, null for none), "
+                                  f"got {value!r}")
     for v in value:
         if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float))):
             raise ManifestError(path, f"{where}: {v!r} is not a number")
@@ -100,7 +101,8 @@ def load_manifest(path: str | Path) -> Manifest:
         if not isinstance(c, dict) or not {"key", "label"} <= set(c):
             raise ManifestError(path, f"columns[{i}]: needs key and label")
         over = c.get("overrides")
-        columns.append(Column(str(c["key"]), str(c["label"]), None if over is None else _overrides(over, path, f"column {c['key']}")))
+        over = None if over is None else _overrides(over, path, f"column {c['key']}")
+        columns.append(Column(str(c["key"]), str(c["label"]), over))
     if not columns or len({c.key for c in columns}) != len(columns):
         raise ManifestError(path, "columns must be a non-empty list with distinct keys")
     n = len(columns)
@@ -115,11 +117,13 @@ def load_manifest(path: str | Path) -> Manifest:
                             _numbers(s.get("published"), n, path, f"set {s['name']} published"), s.get("test_meshes")))
         if not sets:
             raise ManifestError(path, f"group {gname} has no sets")
-        groups.append(Group(gname, _overrides(g.get("overrides"), path, f"group {gname}"), tuple(sets), g.get("average"),
+        groups.append(Group(gname, _overrides(g.get("overrides"), path, f"group {gname}"), tuple(sets),
+                            g.get("average"),
                             _numbers(g.get("published_average"), n, path, f"group {gname} published_average")))
     if not groups:
         raise ManifestError(path, "no groups")
     total = doc.get("total") or {}
-    return Manifest(str(doc["name"]), str(doc["title"]), str(doc.get("source", "")), str(doc.get("note", "") or "").strip(),
+    return Manifest(str(doc["name"]), str(doc["title"]), str(doc.get("source", "")),
+                    str(doc.get("note", "") or "").strip(),
                     _overrides(doc.get("overrides"), path, "manifest"), tuple(columns), tuple(groups),
                     total.get("label"), _numbers(total.get("published"), n, path, "total published"), path)

@@ -5,11 +5,15 @@ bootstrap interval over those meshes. Runs are found by the config hash `meshseg
 only runs made with exactly the cell's configuration (budget included) count. A cell whose folds are
 not all FINISHED is incomplete and has no value. An average row is the mean of its sets' values
 (the paper's way: every set weighs the same), defined only when all of them are complete.
+
+Each cell's bootstrap is seeded by the report seed and the cell's own identity (row kind, group, row label,
+column key), so a cell's interval is the same whichever other rows or columns the table holds.
 """
 
 from __future__ import annotations
 
 import csv
+import hashlib
 import os
 import tempfile
 from dataclasses import dataclass, field
@@ -17,7 +21,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from omegaconf import OmegaConf
 
+from meshseg.errors import ConfigError, MeshsegError, TrackingError
+from meshseg.report.config import hydra_scope
 from meshseg.report.manifest import Column, Manifest, ManifestError
+from meshseg.tracking import FoldRecord
 
 
 @dataclass
@@ -32,7 +39,7 @@ class Cell:
     overrides: tuple[str, ...] = ()    # what `meshseg.run` needs to make this cell's runs
     category: str | None = None        # the dataset's own name for the set
     run_ids: tuple[str, ...] = ()
-    members: list["Cell"] = field(default_factory=list)   # an average's set cells
+    members: list[Cell] = field(default_factory=list)   # an average's set cells
     value: float | None = None
     ci: tuple[float, float] | None = None
 
@@ -102,6 +109,13 @@ def bootstrap_ci(samples: list[np.ndarray], n_boot: int, level: float, rng: np.r
     return float(lo), float(hi)
 
 
+def cell_rng(seed: int, *identity: str) -> np.random.Generator:
+    """The bootstrap generator of one cell: the report seed and the cell's identity (e.g. row kind, group,
+    row label, column key) hashed into 32-bit words, so that no other cell's presence changes it."""
+    digest = hashlib.sha256("\x1f".join(identity).encode()).digest()
+    return np.random.default_rng([seed, *np.frombuffer(digest[:16], dtype="<u4").tolist()])
+
+
 def _match_category(dataset, name: str) -> str | None:
     from meshseg.data.datasets import normalise_name
 
@@ -127,7 +141,8 @@ class _Runs:
             return
         token = None
         while True:
-            page = self.client.search_runs([exp.experiment_id], "attributes.status = 'FINISHED'", max_results=1000, page_token=token)
+            page = self.client.search_runs([exp.experiment_id], "attributes.status = 'FINISHED'", max_results=1000,
+                                           page_token=token)
             for r in page:
                 h = r.data.tags.get("config_hash")
                 if h and (h not in self.by_hash or r.info.end_time > self.by_hash[h].info.end_time):
@@ -137,20 +152,20 @@ class _Runs:
                 break
 
     def mesh_accuracies(self, run) -> list[float]:
-        """The run's per-test-mesh accuracies (%) from its per_mesh.csv artifact."""
+        """The run's per-test-mesh accuracies (%) from its per-mesh table (FoldRecord.PER_MESH)."""
         try:
             with tempfile.TemporaryDirectory() as tmp:
-                path = self.client.download_artifacts(run.info.run_id, "per_mesh.csv", tmp)
+                path = self.client.download_artifacts(run.info.run_id, FoldRecord.PER_MESH, tmp)
                 with open(path, newline="") as f:
                     return [100.0 * float(row[self.metric]) for row in csv.DictReader(f)]
-        except Exception as e:  # a FINISHED run without a readable table is damage, not a missing fold
-            raise ValueError(f"run {run.info.run_id} ({run.info.run_name}): cannot read {self.metric} from per_mesh.csv: {e}") from None
+        except Exception as e:  # a FINISHED run without a readable table is damage in the store, not a missing fold
+            raise TrackingError(f"run {run.info.run_id} ({run.info.run_name}): cannot read {self.metric} from "
+                                f"{FoldRecord.PER_MESH}: {type(e).__name__}: {e}") from None
 
 
 def _fill(cell: Cell, category: str, dataset, split, resolved: dict, runs: _Runs) -> None:
     """Find a cell's category and folds, the FINISHED run of each fold by config hash, and, when
     none is missing, the per-mesh accuracies; or say why the cell cannot have runs."""
-    from meshseg.data.mesh import MeshDataError
     from meshseg.data.splits import folds_for
     from meshseg.tracking import fold_identity
 
@@ -160,7 +175,7 @@ def _fill(cell: Cell, category: str, dataset, split, resolved: dict, runs: _Runs
         return
     try:
         folds = folds_for(dataset, cell.category, split)
-    except (MeshDataError, ValueError) as e:
+    except (MeshsegError, ValueError) as e:   # the split cannot be made here (data code reports that as ValueError)
         cell.problem = str(e)
         return
     found, missing = [], []
@@ -182,21 +197,25 @@ def collect(manifest: Manifest, overrides=(), *, metric: str = "acc", n_boot: in
     """Build the table of `manifest` from the runs in the store the composed config names.
 
     `overrides` are run overrides applied after the manifest's (e.g. budget=cpu, tracking.uri=...);
-    `sets` keeps only the rows whose name or category is listed (their groups lose the average row)."""
-    from hydra import compose, initialize_config_dir
+    `sets` keeps only the rows whose name or category is listed (their groups lose the average row);
+    `metric` is a per-mesh column (FoldRecord.MESH_METRICS)."""
+    from hydra import compose
     from hydra.errors import HydraException
 
-    from meshseg import CONF_DIR
     from meshseg.data.datasets import build_dataset
-    from meshseg.data.mesh import MeshDataError
 
+    if metric not in FoldRecord.MESH_METRICS:
+        raise ConfigError(f"report.metric={metric} is not allowed: choose one of {list(FoldRecord.MESH_METRICS)}")
     keep = None if sets is None else {str(s) for s in sets}
+    known = {name for g in manifest.groups for s in g.sets for name in (s.name, s.category)}
+    if keep is not None and not keep <= known:
+        raise ConfigError(f"report.sets: {sorted(keep - known)} name no set of {manifest.name}; its sets are "
+                          f"{', '.join(s.name for g in manifest.groups for s in g.sets)}")
     stores: dict[tuple[str, str], _Runs] = {}
     datasets: dict[str, object] = {}
     rows: list[Row] = []
     budget_text: dict[str, str] = {}
-    cell_no = 0
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+    with hydra_scope():
         for group in manifest.groups:
             chosen = [s for s in group.sets if keep is None or s.name in keep or s.category in keep]
             if not chosen:
@@ -209,8 +228,7 @@ def collect(manifest: Manifest, overrides=(), *, metric: str = "acc", n_boot: in
                 try:
                     cfg = compose("run", overrides=over)
                 except HydraException as e:
-                    why = str(e).split("\nConfig search path")[0].strip()   # Hydra appends its search path
-                    raise ManifestError(manifest.path, f"group {group.name}, column {column.key}: {why}") from None
+                    raise _compose_error(e, manifest, group, column, overrides) from None
                 b = cfg.budget
                 budget_text[b.name] = f"{b.faces_per_mesh or 'every'} training faces per mesh, {b.epochs} epochs"
                 key = (cfg.tracking.uri, cfg.tracking.experiment)
@@ -221,7 +239,7 @@ def collect(manifest: Manifest, overrides=(), *, metric: str = "acc", n_boot: in
                 if dkey not in datasets:
                     try:
                         datasets[dkey] = build_dataset(cfg.dataset)
-                    except (MeshDataError, OSError, ValueError) as e:
+                    except (MeshsegError, OSError, ValueError) as e:   # no such data here: its cells say so
                         datasets[dkey] = f"dataset {cfg.dataset._target_.rsplit('.', 1)[-1]} unavailable: {e}"
                 dataset = datasets[dkey]
                 resolved = OmegaConf.to_container(cfg, resolve=True)   # once per column, not per fold
@@ -233,25 +251,46 @@ def collect(manifest: Manifest, overrides=(), *, metric: str = "acc", n_boot: in
                         _fill(cell, s.category, dataset, cfg.split, resolved, runs)
             for s, cells in zip(chosen, grid):
                 for cell in cells:
-                    cell_no += 1
                     if cell.status == "ok":
                         cell.value = float(cell.accs.mean())
-                        cell.ci = bootstrap_ci([cell.accs], n_boot, level, np.random.default_rng([seed, cell_no]))
+                        rng = cell_rng(seed, "set", group.name, s.name, cell.column.key)
+                        cell.ci = bootstrap_ci([cell.accs], n_boot, level, rng)
                 rows.append(Row(s.name, "set", group.name, cells))
             if group.average and len(chosen) == len(group.sets):
-                members = rows[-len(chosen):]
+                members = [r.cells for r in rows[-len(chosen):]]
                 rows.append(Row(group.average, "average", group.name,
-                                _averages(manifest, [r.cells for r in members], group.published_average, n_boot, level, seed, cell_no)))
-                cell_no += len(manifest.columns)
+                                _averages(manifest, members, group.published_average, n_boot, level, seed,
+                                          ("average", group.name, group.average))))
     if manifest.total and keep is None:
         every = [r.cells for r in rows if r.kind == "set"]
-        rows.append(Row(manifest.total, "total", "", _averages(manifest, every, manifest.published_total, n_boot, level, seed, cell_no)))
+        rows.append(Row(manifest.total, "total", "", _averages(manifest, every, manifest.published_total, n_boot,
+                                                               level, seed, ("total", "", manifest.total))))
     return Table(manifest, rows, tuple(overrides), metric, level, budget_text)
 
 
-def _averages(manifest, set_cells: list[list[Cell]], published, n_boot, level, seed, cell_no) -> list[Cell]:
+def _compose_error(e: Exception, manifest: Manifest, group, column: Column, overrides) -> Exception:
+    """What to say when a cell's run config cannot be composed: the command line's run overrides are at fault
+    when the manifest's own overrides compose without them (a ConfigError), else the manifest (a ManifestError)."""
+    from hydra import compose
+    from hydra.errors import HydraException
+
+    why = " ".join(str(e).split("\nConfig search path")[0].split())   # one line, without Hydra's search path
+    where = f"group {group.name}, column {column.key}"
+    if overrides:
+        try:
+            compose("run", overrides=manifest.cell_overrides(group, column))
+        except HydraException:
+            pass
+        else:
+            return ConfigError(f"run overrides {' '.join(overrides)} do not apply to {manifest.path} {where}: {why}")
+    return ManifestError(manifest.path, f"{where}: {why}")
+
+
+def _averages(manifest, set_cells: list[list[Cell]], published, n_boot, level, seed,
+              row_id: tuple[str, ...]) -> list[Cell]:
     """One average cell per column over the given set rows: the mean of the set values (each set
-    weighs the same, as in the paper), its interval resampling meshes within every set."""
+    weighs the same, as in the paper), its interval resampling meshes within every set. `row_id`
+    (kind, group, label) with the column key seeds each cell's bootstrap."""
     out = []
     for j, column in enumerate(manifest.columns):
         members = [cells[j] for cells in set_cells]
@@ -259,6 +298,6 @@ def _averages(manifest, set_cells: list[list[Cell]], published, n_boot, level, s
                     budget=members[0].budget)
         if cell.status == "ok":
             cell.value = float(np.mean([m.value for m in members]))
-            cell.ci = bootstrap_ci([m.accs for m in members], n_boot, level, np.random.default_rng([seed, cell_no + j + 1]))
+            cell.ci = bootstrap_ci([m.accs for m in members], n_boot, level, cell_rng(seed, *row_id, column.key))
         out.append(cell)
     return out

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from meshseg.report.config import METRIC_TEXT
 from meshseg.report.table import Cell, Table
 
 FILES = ("table.md", "table.tex", "table.html", "table.csv", "comparison.png")
@@ -36,7 +37,7 @@ def header_lines(table: Table) -> list[str]:
     budgets = "; ".join(f"{b} ({table.budget_text.get(b, '?')})" for b in table.budgets)
     lines = [m.title, f"Published: {m.source}" if m.source else "",
              f"Budget: {budgets or '—'}; cell = mean accuracy (%) over all test meshes of all folds "
-             f"({'after' if table.metric == 'acc' else 'before'} refinement), [{100 * table.level:.0f} % bootstrap interval over test meshes]; "
+             f"({METRIC_TEXT[table.metric]}), [{100 * table.level:.0f} % bootstrap interval over test meshes]; "
              f"Δ = reproduced − published",
              f"Overrides: {' '.join(table.overrides)}" if table.overrides else "", m.note]
     return [line for line in lines if line]
@@ -71,7 +72,8 @@ def csv_text(table: Table) -> str:
             w.writerow([row.group, row.label, row.kind, c.column.key, c.column.label, c.status, f(c.value),
                         f(c.ci and c.ci[0]), f(c.ci and c.ci[1]), f(c.published), f(c.delta), c.n_meshes,
                         c.folds, " ".join(map(str, c.missing)), c.budget or "",
-                        c.why() if c.status in ("incomplete", "unavailable") else "", c.category or "", " ".join(c.run_ids)])
+                        c.why() if c.status in ("incomplete", "unavailable") else "", c.category or "",
+                        " ".join(c.run_ids)])
     return buf.getvalue()
 
 
@@ -95,7 +97,8 @@ def latex(table: Table) -> str:
         parts = []
         for c in row.cells:
             ours = _ours(c, r"{v:.2f}\,{{\scriptsize[{lo:.2f}, {hi:.2f}]}}", r"\textit{{{status}: {why}}}", "--", _tex)
-            parts += [ours, "--" if c.published is None else f"{c.published:.2f}", "--" if c.delta is None else f"{c.delta:+.2f}"]
+            parts += [ours, "--" if c.published is None else f"{c.published:.2f}",
+                      "--" if c.delta is None else f"{c.delta:+.2f}"]
         label = _tex(row.label) if row.kind == "set" else rf"\textbf{{{_tex(row.label)}}}"
         lines.append(f"{label} & " + " & ".join(parts) + r" \\")
     lines += [r"\bottomrule", r"\end{tabular}"]
@@ -112,7 +115,8 @@ def html_text(table: Table) -> str:
     for row in table.rows:
         tds = []
         for c in row.cells:
-            ours = _ours(c, "{v:.2f} <small>[{lo:.2f}, {hi:.2f}]</small>", '<i class="{status}">{status}: {why}</i>', escape=e)
+            ours = _ours(c, "{v:.2f} <small>[{lo:.2f}, {hi:.2f}]</small>", '<i class="{status}">{status}: {why}</i>',
+                         escape=e)
             tds.append(f"<td>{ours}</td><td>{_num(c.published)}</td><td>{_num(c.delta, True)}</td>")
         cls = "" if row.kind == "set" else ' class="average"'
         body.append(f"<tr{cls}><th>{e(row.label)}</th>{''.join(tds)}</tr>")
@@ -120,7 +124,8 @@ def html_text(table: Table) -> str:
     return (f"<!doctype html>\n<html><head><meta charset=\"utf-8\"><title>{e(table.manifest.name)}</title>\n"
             "<style>table{border-collapse:collapse}td,th{border:1px solid #ccc;padding:2px 6px;text-align:right}"
             "tr.average{font-weight:bold}i{color:#a00}</style></head><body>\n"
-            f"<h2>{e(table.manifest.title)}</h2>{notes}\n<table><tr><th rowspan=\"2\">Set</th>{head}</tr><tr>{sub}</tr>\n"
+            f"<h2>{e(table.manifest.title)}</h2>{notes}\n"
+            f"<table><tr><th rowspan=\"2\">Set</th>{head}</tr><tr>{sub}</tr>\n"
             + "\n".join(body) + "\n</table></body></html>\n")
 
 

@@ -1,0 +1,76 @@
+"""`python -m meshseg.report MANIFEST [overrides]`: a manifest's table rebuilt from the logged runs, set beside
+the published numbers, written under <report.out_dir>/<manifest name>/ and logged as an MLflow run.
+
+    python -m meshseg.report experiments/table2_psb_5fold.yaml budget=cpu
+    python -m meshseg.report experiments/table2_psb_5fold.yaml budget=cpu report.sets=[Teddy] report.metric=acc_raw
+
+`report.*` settings: conf/report.yaml. Every other override is a run override (budget=cpu, tracking.uri=...,
+dataset.root=...) applied to each cell's run config. Hydra's flags work as for meshseg.run (--cfg job).
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import hydra
+from omegaconf import DictConfig
+
+from meshseg import CONF_DIR
+from meshseg.errors import MeshsegError
+from meshseg.report.config import check_config, compose_config, hydra_argv
+from meshseg.report.manifest import load_manifest
+from meshseg.report.publish import build, publish, summary
+from meshseg.report.table import Table
+
+#: a user's mistake (bad manifest, bad setting, unreadable data): `error: <message>` and this exit status
+ERROR_EXIT = 2
+
+
+def report_from_config(cfg: DictConfig) -> tuple[Table, list[Path], str | None]:
+    """Build, write and (unless report.log=false) log the report the app config describes."""
+    check_config(cfg)
+    table = build(load_manifest(cfg.manifest), cfg)
+    return table, *publish(table, cfg.report)
+
+
+def report(manifest_path, args=()) -> tuple[Table, list[Path], str | None]:
+    """The command as a function: `args` as on the command line after MANIFEST (report.* settings and run
+    overrides). Returns the table, the files written and the report's run id (None with report.log=false)."""
+    return report_from_config(compose_config("report", manifest_path, args))
+
+
+def run_app(argv, app, config_name: str, doc: str) -> None:
+    """A report-style command: usage on -h or no arguments, the command line checked and handed to the Hydra
+    app `app` of conf/<config_name>.yaml (a user error printed as one `error:` line); any other exception
+    propagates."""
+    argv = list(argv)
+    if not argv or argv[0] in ("-h", "--help"):
+        print(doc.strip())
+        sys.exit(0 if argv else ERROR_EXIT)
+    try:
+        args = hydra_argv(argv, config_name)
+    except MeshsegError as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(ERROR_EXIT)
+    saved = sys.argv
+    sys.argv = [saved[0], *args]   # hydra.main reads sys.argv
+    try:
+        app()
+    finally:
+        sys.argv = saved
+
+
+@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="report")
+def _report_app(cfg: DictConfig) -> None:
+    try:
+        table, files, run_id = report_from_config(cfg)
+    except MeshsegError as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(ERROR_EXIT)
+    print(summary(table, files, run_id))
+
+
+def main(argv=None) -> None:
+    """`python -m meshseg.report`."""
+    run_app(sys.argv[1:] if argv is None else argv, _report_app, "report", __doc__)

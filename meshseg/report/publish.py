@@ -1,0 +1,63 @@
+"""A report's table built from its app config, written in every format and logged as an MLflow run."""
+
+from __future__ import annotations
+
+import hashlib
+import re
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+from meshseg.report.config import hydra_scope, run_overrides
+from meshseg.report.manifest import Manifest
+from meshseg.report.table import Table, collect
+from meshseg.report.write import markdown, write_report
+
+
+def build(manifest: Manifest, cfg: DictConfig) -> Table:
+    """The manifest's table from the runs, with the app config's run overrides and `report.*` settings."""
+    s = cfg.report
+    sets = None if s.sets is None else list(s.sets)
+    return collect(manifest, run_overrides(cfg), metric=s.metric, n_boot=int(s.n_boot), level=float(s.level),
+                   seed=int(s.seed), sets=sets)
+
+
+def log_report(table: Table, files: list[Path], settings: DictConfig) -> str:
+    """Log the report as a run of experiment `settings.experiment` in the runs' store: its files as
+    artifacts, each complete average as a metric. Returns the run id."""
+    from hydra import compose
+
+    from meshseg.tracking import Tracker, git_sha
+
+    m = table.manifest
+    settings = OmegaConf.masked_copy(settings, [k for k in settings if k != "dry_run"])   # reproduce's own switch
+    with hydra_scope():
+        cfg = compose("run", overrides=[*m.overrides, *table.overrides])
+    tracker = Tracker(cfg.tracking.uri, settings.experiment, cfg.tracking.artifact_dir)
+    ident = hashlib.sha256(repr((m.name, table.overrides, OmegaConf.to_yaml(settings))).encode()).hexdigest()[:16]
+    tags = {"report": m.name, "budget": ",".join(table.budgets), "config_hash": ident, "git_sha": git_sha(),
+            "manifest": str(m.path)}
+    cells = [c for r in table.rows for c in r.cells if c.status != "published"]
+    metrics = {f"cells_{status}": sum(c.status == status for c in cells)
+               for status in ("ok", "incomplete", "unavailable")}
+    for row in table.rows:
+        for c in row.cells:
+            if row.kind != "set" and c.value is not None:
+                metrics[re.sub(r"[^\w.\-/ ]", "_", f"{row.label}.{c.column.key}")] = c.value
+    params = {"overrides": " ".join(table.overrides), **OmegaConf.to_container(settings)}
+    with tracker.run(f"report {m.name}", tags, params) as run_id:
+        tracker.log_metrics(run_id, metrics)
+        for f in files:
+            tracker.client.log_artifact(run_id, str(f))
+    return run_id
+
+
+def publish(table: Table, settings: DictConfig) -> tuple[list[Path], str | None]:
+    """Write every format under <out_dir>/<manifest name>/ and, unless report.log=false, log them."""
+    files = write_report(table, Path(settings.out_dir) / table.manifest.name)
+    return files, log_report(table, files, settings) if settings.log else None
+
+
+def summary(table: Table, files: list[Path], run_id: str | None) -> str:
+    """What the commands print: the Markdown table, then where it went."""
+    return markdown(table) + f"\nwrote {', '.join(map(str, files))}" + (f"; logged as run {run_id}" if run_id else "")
