@@ -6,7 +6,10 @@ a corrupt or truncated file, which is then recomputed and replaced, never truste
 
 from __future__ import annotations
 
+import ast
 import hashlib
+import importlib
+import importlib.util
 import inspect
 import json
 import logging
@@ -18,24 +21,56 @@ from pathlib import Path
 
 import numpy as np
 
-from meshseg.features import geometry
 from meshseg.features.registry import Group
 
 log = logging.getLogger(__name__)
 
 
 def code_version(group: Group) -> str:
-    """The group's declared version plus a hash of its module's and the shared geometry's source:
-    editing the code that computes a group can never serve values computed before the edit."""
-    return _code_version(group.fn, group.version)
+    """The group's declared version plus a hash of the source of every meshseg module its code runs:
+    its own module and, transitively, each meshseg module that one imports (at the top or inside a
+    function). Editing any code that computes a group can never serve values computed before the edit."""
+    return _code_version(group.fn.__module__, group.version)
 
 
 @lru_cache(maxsize=None)
-def _code_version(fn, version: str) -> str:
+def _code_version(module: str, version: str) -> str:
     h = hashlib.sha256(version.encode())
-    for module in (inspect.getmodule(fn), geometry):
-        h.update(inspect.getsource(module).encode())
+    for name in dependencies(module):
+        h.update(name.encode())
+        h.update(inspect.getsource(importlib.import_module(name)).encode())
     return h.hexdigest()[:12]
+
+
+def dependencies(module: str) -> list[str]:
+    """`module` and the meshseg modules it imports, transitively, sorted by name. Packages (`__init__`)
+    are namespaces here: `from meshseg.features import geometry` depends on `geometry`, not on every family."""
+    seen: set[str] = set()
+    todo = [module]
+    while todo:
+        name = todo.pop()
+        if name in seen:
+            continue
+        seen.add(name)
+        tree = ast.parse(inspect.getsource(importlib.import_module(name)))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                todo.extend(a.name for a in node.names if _is_module(a.name))
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and (node.module or "").startswith("meshseg"):
+                subs = [f"{node.module}.{a.name}" for a in node.names]
+                todo.extend(m for m in [node.module, *subs] if _is_module(m))
+    return sorted(seen)
+
+
+def _is_module(name: str) -> bool:
+    """A meshseg module with code of its own (not a package)."""
+    if not name.startswith("meshseg."):
+        return False
+    try:
+        spec = importlib.util.find_spec(name)
+    except ModuleNotFoundError:
+        return False
+    return spec is not None and spec.submodule_search_locations is None
 
 
 def cache_key(mesh_hash: str, group: Group, params: dict) -> str:
