@@ -1,0 +1,55 @@
+"""Golden run identities. Shipped results (results/) are found by config hash: a change that moves
+one of these hashes orphans every logged run of that config. If this test fails, either undo the
+change or make it deliberately: update the hashes here and say in docs/changelog.md why results
+made before must be redone."""
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+from meshseg import CONF_DIR
+from meshseg.data.splits import Fold
+from meshseg.tracking import fold_identity
+
+FOLD = Fold(0, ("1", "2", "3", "4"), ("5",))
+DATA = "0123456789abcdef0123456789abcdef"  # a stand-in content hash: the test needs no data
+
+GOLDEN = {
+    "cnn1d 3B cpu psb": (["dataset=psb", "budget=cpu"], "Airplane"),
+    "cnn1d 1B f600 cpu psb": (["dataset=psb", "budget=cpu", "branches=1", "features=f600"], "Airplane"),
+    "cnn2d cpu psb": (["dataset=psb", "budget=cpu", "model=cnn2d"], "Teddy"),
+    "rf cf0_5 loo psb": (["dataset=psb", "budget=cpu", "model=rf", "features=cf0_5", "split=loo"], "Chair"),
+    "cnn1d 3B paper fixed psb": (["dataset=psb", "budget=paper", "split=fixed"], "Airplane"),
+}
+
+
+def identity(overrides, category):
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = compose("run", overrides=overrides)
+    return fold_identity(cfg, category, FOLD, DATA)[1]
+
+
+HASHES = {
+    "cnn1d 3B cpu psb": "747888971ecd8d63",
+    "cnn1d 1B f600 cpu psb": "e8a9a3541d79f7ad",
+    "cnn2d cpu psb": "c36d927ece80404f",
+    "rf cf0_5 loo psb": "293a8bea3b85ed36",
+    "cnn1d 3B paper fixed psb": "fce87a2db1874015",
+}
+
+
+@pytest.mark.parametrize("name", list(GOLDEN))
+def test_golden_config_hashes_stay_put(name):
+    overrides, category = GOLDEN[name]
+    assert identity(overrides, category) == HASHES[name], (
+        f"the run identity of '{name}' changed: see this file's docstring")
+
+
+def test_what_is_not_a_knob_keeps_the_hash(monkeypatch, tmp_path):
+    overrides, category = GOLDEN["cnn1d 3B cpu psb"]
+    base = identity(overrides, category)
+    monkeypatch.setenv("MESHSEG_CACHE_DIR", str(tmp_path))
+    moved = [*overrides, "dataset.root=/elsewhere/psb", "trainer.threads=1", "workers=1",
+             f"tracking.uri=sqlite:///{tmp_path}/x.db", "tracking.renders=0", "trainer.predict_batch_size=64"]
+    assert identity(moved, category) == base
+    assert identity([*overrides, "seed=1"], category) != base
+    assert identity([*overrides, "refine=none"], category) != base
