@@ -21,8 +21,9 @@ from omegaconf import DictConfig, OmegaConf
 
 from meshseg import CONF_DIR
 from meshseg.data.datasets import MeshDataset, build_dataset
-from meshseg.errors import ConfigError, MeshsegError
 from meshseg.data.splits import Fold, folds_for, split_name
+from meshseg.errors import ConfigError, MeshsegError
+from meshseg.refine import check_refine
 
 log = logging.getLogger("meshseg.run")
 
@@ -81,6 +82,7 @@ def check_knobs(cfg: DictConfig) -> None:
         raise ConfigError(f"budget {b.name}: epochs and batch_size must be >= 1 and faces_per_mesh >= 1 or null")
     if not (isinstance(cfg.seed, int) and isinstance(cfg.workers, int) and cfg.workers >= 1):
         raise ConfigError(f"seed={cfg.seed} must be an integer and workers={cfg.workers} an integer >= 1")
+    check_refine(cfg.refine)  # before any fold trains, not after
     t = cfg.tracking
     if not (float(t.heartbeat_s) > 0 and float(t.lease_timeout_s) > 2 * float(t.heartbeat_s)):
         raise ConfigError(f"tracking.heartbeat_s={t.heartbeat_s} must be > 0 and tracking.lease_timeout_s="
@@ -151,12 +153,11 @@ def run(cfg: DictConfig) -> float:
 
     from meshseg.features.sets import FeatureSet
     from meshseg.metrics import mesh_scores
+    from meshseg.models.cnn1d import tune_glibc_malloc
     from meshseg.refine import refine_labels
     from meshseg.tracking import Tracker, flatten, fold_identity, git_sha
     from meshseg.training.data import FeatureSource
     from meshseg.training.fit import fit_predict
-
-    from meshseg.models.cnn1d import tune_glibc_malloc
 
     if cfg.trainer.threads:
         torch.set_num_threads(int(cfg.trainer.threads))

@@ -9,7 +9,7 @@ from omegaconf import DictConfig
 
 from meshseg import CONF_DIR
 from meshseg.data.datasets import MeshDataset, build_dataset
-from meshseg.data.mesh import MeshDataError
+from meshseg.errors import MeshsegError
 
 
 def summarize(dataset: MeshDataset, out=sys.stdout) -> tuple[int, int]:
@@ -32,7 +32,7 @@ def summarize(dataset: MeshDataset, out=sys.stdout) -> tuple[int, int]:
 def main(cfg: DictConfig) -> None:
     try:
         summarize(build_dataset(cfg.dataset))
-    except (MeshDataError, ValueError) as e:
+    except MeshsegError as e:  # anything else is a bug: its traceback shows where
         sys.exit(f"error: {e}")
 
 

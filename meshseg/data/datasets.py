@@ -18,6 +18,7 @@ from meshseg.data import synthetic
 from meshseg.data.archive import file_sha256, is_archive, resolve_root
 from meshseg.data.io import read_off, read_psb_label_names, read_psb_labels, read_seg
 from meshseg.data.mesh import Mesh, MeshDataError
+from meshseg.errors import ConfigError
 
 
 def sort_ids(ids) -> list[str]:
@@ -65,7 +66,7 @@ class MeshDataset:
 
     def check_category(self, category: str) -> str:
         if category not in self.categories:
-            raise ValueError(f"dataset {self.name!r} has no category {category!r}; it has {self.categories}")
+            raise ConfigError(f"dataset {self.name!r} has no category {category!r}; it has {self.categories}")
         return category
 
     def meshes(self, category: str) -> Iterator[Mesh]:
@@ -198,7 +199,7 @@ class Synthetic(MeshDataset):
         categories = list(categories or synthetic.CATEGORIES)
         unknown = sorted(set(categories) - set(synthetic.CATEGORIES))
         if unknown:
-            raise ValueError(f"synthetic dataset has no categories {unknown}; it has {list(synthetic.CATEGORIES)}")
+            raise ConfigError(f"synthetic dataset has no categories {unknown}; it has {list(synthetic.CATEGORIES)}")
         self.categories = categories
         self.meshes_per_category = int(meshes_per_category)
         self.seed, self.min_faces, self.max_faces = int(seed), int(min_faces), int(max_faces)
@@ -212,7 +213,7 @@ class Synthetic(MeshDataset):
 
     def load(self, category: str, mesh_id: str) -> Mesh:
         if mesh_id not in self.mesh_ids(category):
-            raise ValueError(f"synthetic category {category!r} has no mesh {mesh_id!r}; ids are 0..{self.meshes_per_category - 1}")
+            raise ConfigError(f"synthetic category {category!r} has no mesh {mesh_id!r}; ids are 0..{self.meshes_per_category - 1}")
         v, f, labels = synthetic.generate(category, int(mesh_id), self.seed, self.min_faces, self.max_faces)
         return Mesh(v, f, labels, self.label_names(category), id=mesh_id, category=category,
                     source=f"synthetic:{category}/{mesh_id}?seed={self.seed}")

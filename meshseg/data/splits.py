@@ -10,6 +10,7 @@ from pathlib import Path
 
 from meshseg.data.datasets import MeshDataset, normalise_name, sort_ids
 from meshseg.data.mesh import MeshDataError
+from meshseg.errors import ConfigError
 
 PROTOCOLS = ("loo", "kfold", "fixed")
 
@@ -32,7 +33,7 @@ def kfold(ids, k: int = 5) -> list[Fold]:
     published; this is deterministic and balanced to within one mesh)."""
     ids = sort_ids(ids)
     if not 2 <= k <= len(ids):
-        raise ValueError(f"{k}-fold split needs between 2 and {len(ids)} folds for {len(ids)} meshes")
+        raise ConfigError(f"{k}-fold split needs between 2 and {len(ids)} folds for {len(ids)} meshes")
     tests = [ids[i::k] for i in range(k)]
     return [Fold(i, tuple(m for m in ids if m not in set(t)), tuple(t)) for i, t in enumerate(tests)]
 
@@ -79,7 +80,7 @@ def fixed(dataset: MeshDataset, category: str, split_file: str | os.PathLike) ->
     """The single fixed fold of ShapePFCN (Kalogerakis et al. 2017) for one category: block
     `<prefix><Category>` (e.g. psbAirplane), ids `modelNNN` -> mesh NNN."""
     if dataset.split_prefix is None:
-        raise ValueError(f"split=fixed has no lists for dataset {dataset.name!r} (only psb and coseg)")
+        raise ConfigError(f"split=fixed has no lists for dataset {dataset.name!r} (only psb and coseg)")
     blocks = read_split_file(str(split_file))
     key = normalise_name(dataset.split_prefix + category)
     match = [name for name in blocks if normalise_name(name) == key]
@@ -104,10 +105,10 @@ def make_folds(dataset: MeshDataset, category: str, protocol: str, k: int = 5,
         folds = kfold(ids, k)
     elif protocol == "fixed":
         if split_file is None:
-            raise ValueError("split=fixed needs split.file")
+            raise ConfigError("split=fixed needs split.file")
         folds = fixed(dataset, category, split_file)
     else:
-        raise ValueError(f"unknown split protocol {protocol!r}; known: {list(PROTOCOLS)}")
+        raise ConfigError(f"unknown split protocol {protocol!r}; known: {list(PROTOCOLS)}")
     for fold in folds:
         overlap = set(fold.train) & set(fold.test)
         if overlap:

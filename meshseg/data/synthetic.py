@@ -24,6 +24,8 @@ from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 from skimage.measure import marching_cubes
 
+from meshseg.errors import ConfigError
+
 __all__ = ["CATEGORIES", "PART_NAMES", "SyntheticMesh", "generate", "sample"]
 
 CATEGORIES: tuple[str, ...] = ("table", "cup", "figure")
@@ -340,9 +342,9 @@ def _polygonize(parts, rotation, center, lo, hi, spacing, offset):
 def sample(category: str, index: int, seed: int = 0, min_faces: int = 1500, max_faces: int = 6000) -> SyntheticMesh:
     """Like :func:`generate`, but also returns the pose (rotation/center) and shape parameters."""
     if category not in _BUILDERS:
-        raise ValueError(f"unknown category {category!r}; allowed categories: {', '.join(CATEGORIES)}")
+        raise ConfigError(f"unknown category {category!r}; allowed categories: {', '.join(CATEGORIES)}")
     if not 0 < min_faces <= max_faces:
-        raise ValueError(f"need 0 < min_faces <= max_faces, got {min_faces}, {max_faces}")
+        raise ConfigError(f"need 0 < min_faces <= max_faces, got {min_faces}, {max_faces}")
     root = np.random.default_rng([int(seed), CATEGORIES.index(category), int(index)])
     shape_rng, pose_rng, grid_rng = root.spawn(3)
 

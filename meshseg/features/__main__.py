@@ -19,9 +19,10 @@ from omegaconf import DictConfig
 from meshseg import CONF_DIR
 from meshseg.data.datasets import build_dataset
 from meshseg.data.io import read_obj, read_off
-from meshseg.data.mesh import Mesh, MeshDataError
+from meshseg.data.mesh import Mesh
+from meshseg.errors import ConfigError, MeshDataError, MeshsegError
 from meshseg.features.cache import FeatureCache
-from meshseg.features.sets import FeatureSet, compute_dataset
+from meshseg.features.sets import FeatureSet, check_finite, compute_dataset
 
 
 def load_mesh_file(path: str) -> Mesh:
@@ -56,17 +57,18 @@ def main(cfg: DictConfig) -> None:
         cache_root = cfg.paths.cache_dir if cfg.cache else None
         if cfg.mesh is not None:
             if cfg.out is None:
-                raise ValueError("mesh=FILE needs out=FILE.npy")
+                raise ConfigError("mesh=FILE needs out=FILE.npy")
             mesh = load_mesh_file(cfg.mesh)
             t0 = time.perf_counter()
             X = fs.compute(mesh.vertices, mesh.faces, mesh.content_hash, FeatureCache(cache_root))
+            check_finite(X, fs, mesh.source)  # never write NaN: the dataset path refuses such a mesh too
             save_npy(cfg.out, X)
             print(f"{cfg.out}: {X.shape[0]} x {X.shape[1]} float32 ({fs.name}) in {time.perf_counter() - t0:.1f} s")
             return
         dataset = build_dataset(cfg.dataset)
         categories = [dataset.check_category(cfg.category)] if cfg.category else dataset.categories
         compute_dataset(dataset, fs, cache_root, [(c, m) for c in categories for m in dataset.mesh_ids(c)], cfg.workers)
-    except (MeshDataError, ValueError, FloatingPointError) as e:
+    except MeshsegError as e:  # anything else is a bug: its traceback shows where
         sys.exit(f"error: {e}")
 
 

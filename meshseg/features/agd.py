@@ -18,8 +18,14 @@ import numpy as np
 from scipy.sparse.csgraph import connected_components, dijkstra
 from threadpoolctl import threadpool_limits
 
-from meshseg.features.geometry import (face_areas, face_centers, face_dual_graph, farthest_point_sampling, kalogerakis_units,
-                                       per_face_normals)
+from meshseg.features.geometry import (
+    face_areas,
+    face_centers,
+    face_dual_graph,
+    farthest_point_sampling,
+    kalogerakis_units,
+    per_face_normals,
+)
 from meshseg.features.registry import register
 
 AGD_COLUMNS = [

@@ -30,6 +30,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import splu
 
+from meshseg.errors import ConfigError
 from meshseg.features.geometry import face_areas, vertex_to_face
 from meshseg.features.registry import register
 
@@ -144,7 +145,7 @@ def neighbour_average(V: np.ndarray, F: np.ndarray, weights: str = "cotan") -> s
         i, j = e // n, e % n
         W = sp.coo_matrix((np.ones(2 * len(e)), (np.r_[i, j], np.r_[j, i])), shape=(n, n)).tocsr()
     else:
-        raise ValueError(f"cf_smooth: taubin_weights must be 'cotan' or 'uniform', not {weights!r}")
+        raise ConfigError(f"cf_smooth: taubin_weights must be 'cotan' or 'uniform', not {weights!r}")
     W.eliminate_zeros()
     deg = np.asarray(W.sum(axis=1)).ravel()
     return (sp.diags(np.divide(1.0, deg, out=np.zeros(n), where=deg > 0)) @ W).tocsr()
@@ -170,9 +171,9 @@ def smoothed_conformal_factors(V: np.ndarray, F: np.ndarray, iterations: int = 5
     original mesh), L the Laplacian of M^s_i (`laplacian_mesh="smoothed"`) or of the original mesh
     ("original"), and both targets spreading `target_total` (see target_curvature)."""
     if laplacian_mesh not in ("smoothed", "original"):
-        raise ValueError(f"cf_smooth: laplacian_mesh must be 'smoothed' or 'original', not {laplacian_mesh!r}")
+        raise ConfigError(f"cf_smooth: laplacian_mesh must be 'smoothed' or 'original', not {laplacian_mesh!r}")
     if target_total not in ("mesh", "sphere"):
-        raise ValueError(f"cf_smooth: target_total must be 'mesh' or 'sphere', not {target_total!r}")
+        raise ConfigError(f"cf_smooth: target_total must be 'mesh' or 'sphere', not {target_total!r}")
     n_comp, labels = vertex_components(F, len(V))
     k_target = target_curvature(V, F, labels, n_comp, target_total)
     L0 = cotan_laplacian(V, F) if laplacian_mesh == "original" else None

@@ -14,8 +14,16 @@ import numpy as np
 from scipy.spatial import cKDTree
 from threadpoolctl import threadpool_limits
 
-from meshseg.features.geometry import (edge_face_pairs, face_areas, face_centers, kalogerakis_normalize,  # noqa: F401
-                                       per_face_normals, smoothed_face_normals, vertex_to_face)
+from meshseg.errors import ConfigError
+from meshseg.features.geometry import (  # noqa: F401
+    edge_face_pairs,
+    face_areas,
+    face_centers,
+    kalogerakis_normalize,
+    per_face_normals,
+    smoothed_face_normals,
+    vertex_to_face,
+)
 from meshseg.features.registry import register
 
 CURVATURE_VALUES = ("k1", "k2", "k1-k2", "K1", "K2", "K1-K2", "H", "K")
@@ -368,7 +376,7 @@ def curvature(
     instead of the original's smoothed ones (`smoothed_face_normals`).
     """
     if len(radii) != 4:
-        raise ValueError(f"curvature: needs 4 radii (the group has 4 x 16 columns), got {list(radii)}")
+        raise ConfigError(f"curvature: needs 4 radii (the group has 4 x 16 columns), got {list(radii)}")
     Vn = kalogerakis_normalize(V, F)
     with threadpool_limits(limits=1, user_api="blas"):  # many small BLAS calls: threads only add sync overhead
         k = principal_curvatures(Vn, F, radii, max_neighbors=max_neighbors, min_faces=min_faces, smoothed_normals=smoothed_normals)
@@ -396,12 +404,23 @@ def gc(V: np.ndarray, F: np.ndarray, *, min_area: float = 1e-8) -> np.ndarray:
     the mean over the face's three vertices. No per-mesh normalisation: on a sphere of radius r it
     is 1/r^2, and it scales as 1/s^2 with the mesh. A vertex whose area is below `min_area` x the
     mean vertex area (zero-area faces only) uses that floor, so the value stays finite."""
-    V = np.ascontiguousarray(V, dtype=np.float64)
-    F = np.ascontiguousarray(F, dtype=np.int64)
-    defect = igl.gaussian_curvature(V, F)
-    area = igl.massmatrix(V, F, igl.MASSMATRIX_TYPE_BARYCENTRIC).diagonal()
-    used = np.zeros(len(V), bool)
-    used[F.ravel()] = True
-    floor = min_area * (area[used].mean() if used.any() and area[used].mean() > 0 else 1.0)
+    # Valid but unusual meshes: vertices no face uses are dropped (igl sizes its outputs by the largest
+    # index), and faces of zero area (repeated or coincident vertices) have no angles, so they take no
+    # part in the defect and the areas; their own value is the mean over their vertices like any face's.
+    used, Fc = np.unique(np.asarray(F, dtype=np.int64), return_inverse=True)
+    Fc = np.ascontiguousarray(Fc.reshape(-1, 3))
+    Vc = np.ascontiguousarray(np.asarray(V, dtype=np.float64)[used])
+    n = len(Vc)
+    good = face_areas(Vc, Fc) > 0
+    defect, area = np.zeros(n), np.zeros(n)
+    if good.any():
+        Fg = np.ascontiguousarray(Fc[good])
+        d = igl.gaussian_curvature(Vc, Fg)
+        a = igl.massmatrix(Vc, Fg, igl.MASSMATRIX_TYPE_BARYCENTRIC).diagonal()
+        defect[: len(d)], area[: len(a)] = d[:n], a[:n]
+    touched = np.zeros(n, bool)
+    touched[Fc[good].ravel()] = True
+    defect[~touched] = 0.0  # a vertex of degenerate faces only: no curvature can be measured there
+    floor = min_area * (area[touched].mean() if touched.any() and area[touched].mean() > 0 else 1.0)
     k = defect / np.maximum(area, floor)
-    return vertex_to_face(k, F)[:, None].astype(np.float32)
+    return vertex_to_face(k, Fc)[:, None].astype(np.float32)

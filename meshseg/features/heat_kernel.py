@@ -23,6 +23,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import LinearOperator, eigsh, splu
 from threadpoolctl import threadpool_limits
 
+from meshseg.errors import ConfigError
 from meshseg.features.geometry import vertex_to_face
 from meshseg.features.registry import register
 
@@ -122,7 +123,7 @@ def sihks(V: np.ndarray, F: np.ndarray, *, n_eigen: int = 100, alpha: float = 2.
     where the signal has content. Per vertex, then per face the mean of its three vertices.
     """
     if (n_tau - 1) // 2 + 1 < 100:
-        raise ValueError(f"sihks: n_tau={n_tau} gives fewer than 100 frequencies; use n_tau >= 199")
+        raise ConfigError(f"sihks: n_tau={n_tau} gives fewer than 100 frequencies; use n_tau >= 199")
     lam, phi, Fc, _ = laplace_beltrami_eigenpairs(V, F, n_eigen)
     t0 = hks_times(lam, 2)[0]
     t = t0 * alpha ** (tau_start + tau_step * np.arange(n_tau))

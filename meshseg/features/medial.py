@@ -12,7 +12,15 @@ import numpy as np
 
 from meshseg.features.registry import register
 from meshseg.features.shape_diameter import (
-    BASES, STATISTICS, RaySetup, fill_invalid, log_transforms, normalise_columns, ray_fan, ray_statistics, sdf_rays,
+    BASES,
+    STATISTICS,
+    RaySetup,
+    fill_invalid,
+    log_transforms,
+    normalise_columns,
+    ray_fan,
+    ray_statistics,
+    sdf_rays,
 )
 
 #: polar angles (degrees from the inward normal) of the rings of rays cast from the medial point

@@ -8,6 +8,7 @@ from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 from threadpoolctl import threadpool_limits
 
+from meshseg.errors import ConfigError
 from meshseg.features.curvature import clip_outliers, dual_edges, geodesic_balls, kalogerakis_normalize
 from meshseg.features.geometry import face_areas, face_centers, face_dual_graph, farthest_point_sampling
 from meshseg.features.registry import register
@@ -184,7 +185,7 @@ def pca(
     `site_spacing` x radius, interpolated from `site_neighbors` sites). Per face, no vertex mapping.
     """
     if len(radii) != 4:
-        raise ValueError(f"pca: needs 4 radii (the group has 4 x 12 columns), got {list(radii)}")
+        raise ConfigError(f"pca: needs 4 radii (the group has 4 x 12 columns), got {list(radii)}")
     Vn = kalogerakis_normalize(V, F)
     c = face_centers(Vn, F)
     a = face_areas(Vn, F)

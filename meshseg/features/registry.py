@@ -13,6 +13,8 @@ from typing import Callable
 
 import numpy as np
 
+from meshseg.errors import ConfigError
+
 
 @dataclass(frozen=True)
 class Group:
@@ -28,7 +30,7 @@ class Group:
         overrides = dict(overrides or {})
         unknown = sorted(set(overrides) - set(self.defaults))
         if unknown:
-            raise ValueError(f"feature group {self.name!r} has no parameters {unknown}; it has {sorted(self.defaults)}")
+            raise ConfigError(f"feature group {self.name!r} has no parameters {unknown}; it has {sorted(self.defaults)}")
         return {**self.defaults, **overrides}
 
     def __call__(self, V: np.ndarray, F: np.ndarray, **params) -> np.ndarray:
@@ -62,5 +64,5 @@ def get_group(name: str) -> Group:
     from meshseg import features  # noqa: F401  (importing the package registers every family)
 
     if name not in GROUPS:
-        raise ValueError(f"unknown feature group {name!r}; known: {sorted(GROUPS)}")
+        raise ConfigError(f"unknown feature group {name!r}; known: {sorted(GROUPS)}")
     return GROUPS[name]

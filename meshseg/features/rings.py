@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from meshseg.errors import ConfigError
 from meshseg.features.geometry import face_adjacency
 
 
@@ -19,7 +20,7 @@ def step_matrix(F: np.ndarray, adjacency: str = "edge") -> sp.csr_matrix:
         inc = sp.csr_matrix((np.ones(3 * nf), (np.repeat(np.arange(nf), 3), F.ravel())), shape=(nf, F.max() + 1))
         a = (inc @ inc.T).tocsr()
     else:
-        raise ValueError(f"unknown ring adjacency {adjacency!r}; known: ['edge', 'vertex']")
+        raise ConfigError(f"unknown ring adjacency {adjacency!r}; known: ['edge', 'vertex']")
     a = (a + sp.identity(nf, format="csr")).tocsr()
     a.data[:] = 1.0
     return a

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from meshseg.data.datasets import MeshDataset
+from meshseg.errors import ConfigError, MeshDataError
 from meshseg.features.cache import FeatureCache
 from meshseg.features.registry import get_group
 
@@ -36,12 +37,12 @@ class Entry:
 def parse_entry(text: str) -> Entry:
     m = _ENTRY.match(text.strip())
     if not m:
-        raise ValueError(f"bad feature set entry {text!r}: expected 'group' or 'group[a:b]'")
+        raise ConfigError(f"bad feature set entry {text!r}: expected 'group' or 'group[a:b]'")
     group = get_group(m.group(1))
     start = int(m.group(2) or 0)
     stop = int(m.group(3) or group.dim)
     if not 0 <= start < stop <= group.dim:
-        raise ValueError(f"feature set entry {text!r}: columns {start}:{stop} outside 0:{group.dim}")
+        raise ConfigError(f"feature set entry {text!r}: columns {start}:{stop} outside 0:{group.dim}")
     return Entry(group.name, start, stop)
 
 
@@ -100,13 +101,21 @@ class FeatureSet:
         return np.ascontiguousarray(np.concatenate([blocks[e.group][:, e.start : e.stop] for e in self.entries], axis=1))
 
 
+def check_finite(X: np.ndarray, fs: "FeatureSet", source: str) -> None:
+    """One rule for every command: a mesh whose features are not all finite is refused, naming the
+    mesh and the first columns at fault, never written or trained on."""
+    if not np.isfinite(X).all():
+        bad = [fs.columns[j] for j in np.flatnonzero(~np.isfinite(X).all(axis=0))]
+        rows = int((~np.isfinite(X).all(axis=1)).sum())
+        raise MeshDataError(source, f"{rows} faces have non-finite {fs.name} features, in columns {bad[:5]}"
+                                    f"{' …' if len(bad) > 5 else ''} (degenerate faces or unused vertices?)")
+
+
 def _one(dataset: MeshDataset, category: str, mesh_id: str, fs: FeatureSet, cache_root: str | None):
     t0 = time.perf_counter()
     mesh = dataset.load(category, mesh_id)
     X = fs.compute(mesh.vertices, mesh.faces, mesh.content_hash, FeatureCache(cache_root))
-    if not np.isfinite(X).all():
-        bad = sorted({fs.columns[j] for j in np.flatnonzero(~np.isfinite(X).all(axis=0))})
-        raise FloatingPointError(f"{mesh.source}: non-finite features in columns {bad[:5]}")
+    check_finite(X, fs, mesh.source)
     return category, mesh_id, mesh.n_faces, time.perf_counter() - t0
 
 

@@ -25,8 +25,15 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from meshseg.features.geometry import (face_adjacency, face_areas, face_centers, per_face_normals,  # noqa: F401
-                                       smoothed_face_normals, vertex_normals)
+from meshseg.errors import ConfigError
+from meshseg.features.geometry import (  # noqa: F401
+    face_adjacency,
+    face_areas,
+    face_centers,
+    per_face_normals,
+    smoothed_face_normals,
+    vertex_normals,
+)
 from meshseg.features.registry import register
 
 CONES = (15, 30, 45)
@@ -47,7 +54,7 @@ def face_normals(V: np.ndarray, F: np.ndarray, kind: str, vn: np.ndarray | None 
         return smoothed_face_normals(V, F, vn)
     if kind == "face":
         return per_face_normals(V, F)
-    raise ValueError(f"unknown normals {kind!r}: expected 'vertex' or 'face'")
+    raise ConfigError(f"unknown normals {kind!r}: expected 'vertex' or 'face'")
 
 
 def edge_frames(V: np.ndarray, F: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -235,7 +242,7 @@ class RaySetup:
         elif frame == "edge":
             self.t1, self.t2 = edge_frames(V, F, self.n)
         else:
-            raise ValueError(f"unknown frame {frame!r}: expected 'principal' or 'edge'")
+            raise ConfigError(f"unknown frame {frame!r}: expected 'principal' or 'edge'")
         self.caster = RayCaster(V, F)
         self.miss = miss_distance(V)
 

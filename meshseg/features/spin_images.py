@@ -11,7 +11,13 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from meshseg.features.geometry import face_areas, face_centers, farthest_point_sampling, kalogerakis_units, vertex_normals
+from meshseg.features.geometry import (
+    face_areas,
+    face_centers,
+    farthest_point_sampling,
+    kalogerakis_units,
+    vertex_normals,
+)
 from meshseg.features.registry import register
 from meshseg.features.shape_diameter import face_normals
 

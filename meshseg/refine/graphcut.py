@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from meshseg.errors import ConfigError
 from meshseg.features.geometry import edge_face_pairs, face_centers, per_face_normals
 
 # gco works in int32 energy terms (GCO_MAX_ENERGYTERM = 1e7 is its overflow guard): meshseg scales
@@ -75,9 +76,9 @@ def edge_theta(angle: np.ndarray, convex_factor: float = 0.08, theta_eps: float 
     degenerate faces give a finite cost -log(theta_eps).
     """
     if not 0 < theta_eps <= 1:
-        raise ValueError(f"theta_eps must be in (0, 1], got {theta_eps}")
+        raise ConfigError(f"theta_eps must be in (0, 1], got {theta_eps}")
     if not convex_factor >= 0:
-        raise ValueError(f"convex_factor must be >= 0, got {convex_factor}")
+        raise ConfigError(f"convex_factor must be >= 0, got {convex_factor}")
     a = np.abs(np.asarray(angle, np.float64))
     theta = np.where(np.asarray(angle) > 0, convex_factor * a, a)
     return np.clip(theta, theta_eps * np.pi, np.pi)
@@ -112,7 +113,7 @@ def normalize_features(f: np.ndarray, mode: str = "std") -> np.ndarray:
     if mode == "none":
         return f
     if mode != "std":
-        raise ValueError(f"unknown feature normalisation {mode!r}; known: ['std', 'none']")
+        raise ConfigError(f"unknown feature normalisation {mode!r}; known: ['std', 'none']")
     sd = f.std(axis=0)
     # relative guard: a float32 column constant up to rounding is constant
     keep = sd > 1e-6 * np.maximum(np.abs(f).max(axis=0), 1e-300)

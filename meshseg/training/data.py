@@ -18,7 +18,7 @@ from meshseg.data.datasets import MeshDataset
 from meshseg.data.mesh import Mesh
 from meshseg.features.cache import FeatureCache
 from meshseg.features.rings import ring_means
-from meshseg.features.sets import FeatureSet, compute_dataset
+from meshseg.features.sets import FeatureSet, check_finite, compute_dataset
 
 
 @dataclass
@@ -52,8 +52,7 @@ class FeatureSource:
         """The mesh and its [X^1, ..., X^B], each (faces, features) float32."""
         mesh = self.mesh(mesh_id)
         X = self.features.compute(mesh.vertices, mesh.faces, mesh.content_hash, FeatureCache(self.cache_root))
-        if not np.isfinite(X).all():
-            raise FloatingPointError(f"{mesh.source}: non-finite {self.features.name} features")
+        check_finite(X, self.features, mesh.source)
         return mesh, ring_means(X, mesh.faces, self.branches, self.ring_adjacency)
 
 

@@ -23,6 +23,7 @@ from hydra.utils import instantiate
 
 from meshseg.data.mesh import Mesh
 from meshseg.data.splits import Fold
+from meshseg.errors import ConfigError
 from meshseg.training.data import FeatureSource, TrainSet, build_train, iter_test_inputs
 from meshseg.training.module import Segmenter
 from meshseg.training.stages import Fitted, device_of, fit_autoencoder, fit_forest, train_stage
@@ -64,7 +65,7 @@ def fit_predict(source: FeatureSource, fold: Fold, model_cfg, budget, trainer_cf
     budget says, then class probabilities for every face of every test mesh."""
     kind = model_cfg.get("kind", "net")
     if kind not in FITTERS:
-        raise ValueError(f"model {model_cfg.name}: kind={kind!r} is not known: choose one of {sorted(FITTERS)}")
+        raise ConfigError(f"model {model_cfg.name}: kind={kind!r} is not known: choose one of {sorted(FITTERS)}")
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     source.prepare([*fold.train, *fold.test], workers)

@@ -21,6 +21,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from meshseg.errors import ConfigError
 from meshseg.models.autoencoder import Autoencoder, StackedAutoencoderClassifier, kl_sparsity
 from meshseg.models.forest import RandomForest
 from meshseg.training.data import FoldDataModule, TrainSet
@@ -87,7 +88,7 @@ class Reconstruction(pl.LightningModule):
                  sparsity_weight: float = 0.0, sparsity_target: float = 0.05):
         super().__init__()
         if sparsity_weight > 0 and autoencoder.activation != "sigmoid":
-            raise ValueError(f"sparsity_weight > 0 needs sigmoid codes in (0, 1), got activation {autoencoder.activation!r}")
+            raise ConfigError(f"sparsity_weight > 0 needs sigmoid codes in (0, 1), got activation {autoencoder.activation!r}")
         self.autoencoder, self.stage = autoencoder, stage
         self.lr, self.weight_decay = float(lr), float(weight_decay)
         self.sparsity_weight, self.sparsity_target = float(sparsity_weight), float(sparsity_target)
@@ -134,7 +135,7 @@ def fit_autoencoder(train: TrainSet, n_classes: int, model_cfg, budget, trainer_
     """`head: softmax`: autoencoders, softmax on the codes, stack fine-tuned ("AE & NN").
     `head: forest`: autoencoders, random forest on the codes ("AE & RF")."""
     if model_cfg.head not in ("softmax", "forest"):
-        raise ValueError(f"model {model_cfg.name}: head={model_cfg.head!r} is not known: choose softmax or forest")
+        raise ConfigError(f"model {model_cfg.name}: head={model_cfg.head!r} is not known: choose softmax or forest")
     device, batch = device_of(trainer_cfg), int(trainer_cfg.predict_batch_size)
     autoencoders, codes = pretrain_autoencoders(train, model_cfg.autoencoders, budget, trainer_cfg, seed, logger)
     parts: dict[str, object] = {f"ae{i}": ae for i, ae in enumerate(autoencoders, start=1)}
