@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 # Re-install only when the package's requirements change.
 STAMP  := $(VENV)/.installed
 
-.PHONY: install demo test clean-venv
+.PHONY: install demo lint format test clean-venv
 
 install: $(STAMP)
 
@@ -25,7 +25,16 @@ demo: install
 	@echo "  $(BIN)/mlflow ui --backend-store-uri sqlite:///mlruns/mlflow.db   # then open http://127.0.0.1:5000"
 	@echo "Their table (reports/synthetic/): $(BIN)/python -m meshseg.report experiments/synthetic.yaml"
 
-test: install
+# Lint and format check (ruff, configured in pyproject.toml); `make format` applies both.
+lint: install
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+
+format: install
+	$(BIN)/ruff check --fix .
+	$(BIN)/ruff format .
+
+test: lint
 	$(BIN)/python -m pytest
 
 clean-venv:

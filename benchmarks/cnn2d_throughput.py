@@ -86,9 +86,11 @@ def main(argv=None) -> None:
     nets, data = {}, {}
     for name, (make, branches) in MODELS.items():
         nets[name] = make(args.features, args.classes)
-        data[name] = (torch.randn(args.batch_size, branches, args.features),
-                      torch.randint(0, args.classes, (args.batch_size,)),
-                      torch.randn(args.faces, branches, args.features))
+        data[name] = (
+            torch.randn(args.batch_size, branches, args.features),
+            torch.randint(0, args.classes, (args.batch_size,)),
+            torch.randn(args.faces, branches, args.features),
+        )
     rates = {name: ([], []) for name in MODELS}
     for _ in range(args.repeats):
         for name, net in nets.items():
@@ -96,16 +98,20 @@ def main(argv=None) -> None:
             rates[name][0].append(train_rate(net, x, y, args.steps))
             rates[name][1].append(predict_rate(net, faces, args.predict_batch))
 
-    print(f"cpu, {torch.get_num_threads()} threads; torch {torch.__version__}; {args.features} features, "
-          f"{args.classes} classes; train batch {args.batch_size}, predict batch {args.predict_batch}; "
-          f"median of {args.repeats} rounds")
+    print(
+        f"cpu, {torch.get_num_threads()} threads; torch {torch.__version__}; {args.features} features, "
+        f"{args.classes} classes; train batch {args.batch_size}, predict batch {args.predict_batch}; "
+        f"median of {args.repeats} rounds"
+    )
     head = f"{'model':<22} {'params':>9} | {'train smp/s':>11} {'range':>13} | {'predict faces/s':>15} {'range':>15}"
     print(head)
     print("-" * len(head))
     for name, (train, pred) in rates.items():
         n_params = sum(t.numel() for t in nets[name].parameters())
-        print(f"{name:<22} {n_params:>9,} | {statistics.median(train):>11.0f} {min(train):>6.0f}-{max(train):<6.0f} | "
-              f"{statistics.median(pred):>15.0f} {min(pred):>7.0f}-{max(pred):<7.0f}")
+        print(
+            f"{name:<22} {n_params:>9,} | {statistics.median(train):>11.0f} {min(train):>6.0f}-{max(train):<6.0f} | "
+            f"{statistics.median(pred):>15.0f} {min(pred):>7.0f}-{max(pred):<7.0f}"
+        )
 
 
 if __name__ == "__main__":

@@ -20,7 +20,20 @@ import time
 
 # smallest, quartiles, median and the largest L-PSB mesh (2,682 .. 55,644 faces)
 DEFAULT = ["Octopus/125", "Airplane/61", "Human/15", "FourLeg/394", "Chair/117", "Bust/305"]
-SET = ["curvature", "pca", "shape_context", "agd", "sdf", "dms", "spin_images", "cf0", "cf_smooth", "gc", "hks", "sihks"]
+SET = [
+    "curvature",
+    "pca",
+    "shape_context",
+    "agd",
+    "sdf",
+    "dms",
+    "spin_images",
+    "cf0",
+    "cf_smooth",
+    "gc",
+    "hks",
+    "sihks",
+]
 
 
 def child(root: str, cache_dir: str, mesh: str, groups: list[str]) -> None:
@@ -57,25 +70,44 @@ def main() -> None:
         from meshseg.data.io import read_off
 
         ds = PSB(args.root, args.cache_dir)
-        sized = sorted((len(read_off(ds.root / c / f"{m}.off")[1]), f"{c}/{m}") for c in ds.categories for m in ds.mesh_ids(c))
+        sized = sorted(
+            (len(read_off(ds.root / c / f"{m}.off")[1]), f"{c}/{m}") for c in ds.categories for m in ds.mesh_ids(c)
+        )
         step = len(sized) / args.sample
         meshes = [sized[int(i * step)][1] for i in range(args.sample)]
 
     rows = []
     t_all = time.perf_counter()
     for mesh in meshes:
-        r = subprocess.run([sys.executable, __file__, "--root", args.root, "--cache-dir", args.cache_dir,
-                            "--child", mesh, "--groups", *args.groups], capture_output=True, text=True)
+        r = subprocess.run(
+            [
+                sys.executable,
+                __file__,
+                "--root",
+                args.root,
+                "--cache-dir",
+                args.cache_dir,
+                "--child",
+                mesh,
+                "--groups",
+                *args.groups,
+            ],
+            capture_output=True,
+            text=True,
+        )
         if r.returncode:
             sys.exit(f"{mesh} failed:\n{r.stderr[-3000:]}")
         rows.append(json.loads(r.stdout.strip().splitlines()[-1]))
         tot = sum(rows[-1]["seconds"].values())
-        print(f"{mesh:>14}: {rows[-1]['faces']:6d} faces, {tot:6.1f} s, {rows[-1]['faces'] / tot:6.0f} faces/s, "
-              f"peak {max(rows[-1]['peak_mib'].values()):5.0f} MiB", flush=True)
+        print(
+            f"{mesh:>14}: {rows[-1]['faces']:6d} faces, {tot:6.1f} s, {rows[-1]['faces'] / tot:6.0f} faces/s, "
+            f"peak {max(rows[-1]['peak_mib'].values()):5.0f} MiB",
+            flush=True,
+        )
 
     names = [r["mesh"] for r in rows]
     width = max(10, *(len(n) for n in names))
-    print(f"\nfaces/s per group (wall clock, one process, no cache); last column: median over meshes")
+    print("\nfaces/s per group (wall clock, one process, no cache); last column: median over meshes")
     print(f"{'group':<14}" + "".join(f"{n:>{width + 1}}" for n in names) + f"{'median':>10}")
     print(f"{'faces':<14}" + "".join(f"{r['faces']:>{width + 1}}" for r in rows))
     for g in args.groups:

@@ -1,6 +1,6 @@
 """Parse speed of the L-PSB: every mesh and its labels, repeated; prints medians.
 
-    python benchmarks/load_psb.py [--root ../shared/data/psb/LabeledDB_new.tar.xz] [--repeat 3]
+python benchmarks/load_psb.py [--root ../shared/data/psb/LabeledDB_new.tar.xz] [--repeat 3]
 """
 
 from __future__ import annotations
@@ -36,7 +36,9 @@ def main() -> None:
         full_times.append(time.perf_counter() - t0)
     off, full = statistics.median(off_times), statistics.median(full_times)
     print(f"{len(paths)} meshes, {faces} faces, {nbytes / 1e6:.0f} MB of OFF text")
-    print(f"read_off only      : median {off:6.2f} s  ({faces / off / 1e6:.2f} M faces/s, {nbytes / off / 1e6:.0f} MB/s)")
+    print(
+        f"read_off only      : median {off:6.2f} s  ({faces / off / 1e6:.2f} M faces/s, {nbytes / off / 1e6:.0f} MB/s)"
+    )
     print(f"mesh + labels + validation: median {full:6.2f} s  ({faces / full / 1e6:.2f} M faces/s)")
 
 

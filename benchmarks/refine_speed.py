@@ -55,16 +55,23 @@ def main() -> None:
     P = np.exp(logits) / np.exp(logits).sum(axis=1, keepdims=True)
     agd = average_geodesic_distance(V, F)
 
-    out = {"faces": mesh.n_faces, "classes": P.shape[1], "repeats": args.repeats, "median_s": {},
-           "acc_raw": area_weighted_accuracy(P.argmax(1), y, mesh.face_areas)}
+    out = {
+        "faces": mesh.n_faces,
+        "classes": P.shape[1],
+        "repeats": args.repeats,
+        "median_s": {},
+        "acc_raw": area_weighted_accuracy(P.argmax(1), y, mesh.face_areas),
+    }
     t, (pairs, angle, length) = median_time(lambda: graphcut.dual_edges(V, F), args.repeats)
     out["median_s"]["dual_edges"] = t
     theta = graphcut.edge_theta(angle)
     w = graphcut.classic_weights(theta, length / length.mean())
-    out["median_s"]["alpha_expansion"], _ = median_time(lambda: graphcut.alpha_expansion(P, pairs, w, 2.0), args.repeats)
+    out["median_s"]["alpha_expansion"], _ = median_time(
+        lambda: graphcut.alpha_expansion(P, pairs, w, 2.0), args.repeats
+    )
     for name in ("graphcut_classic", "graphcut_agd"):
         cfg = OmegaConf.load(os.path.join(CONF, f"{name}.yaml"))
-        t, labels = median_time(lambda: refine_labels(mesh, P, cfg, agd), args.repeats)
+        t, labels = median_time(lambda cfg=cfg: refine_labels(mesh, P, cfg, agd), args.repeats)
         out["median_s"][name] = t
         out[f"acc_{name}"] = area_weighted_accuracy(labels, y, mesh.face_areas)
     print(json.dumps(out, indent=1))

@@ -38,15 +38,18 @@ def main() -> None:
     sphere = trimesh.creation.icosphere(subdivisions=args.subdivisions)
     v, f = np.asarray(sphere.vertices), np.asarray(sphere.faces)
     centres = v[f].mean(axis=1)
-    gt = (centres > 0).astype(int) @ [1, 2, 4]          # octant: 8 labels
-    pred = np.where(centres[:, 2] > 0.9, 0, gt)        # a wrong cap, so the two panels differ
+    gt = (centres > 0).astype(int) @ [1, 2, 4]  # octant: 8 labels
+    pred = np.where(centres[:, 2] > 0.9, 0, gt)  # a wrong cap, so the two panels differ
     names = [f"part {i}" for i in range(8)]
     confusion = np.bincount(gt * 8 + pred, minlength=64).reshape(8, 8)
-    render_labels(v, f, gt, 8)                           # warm-up (imports, caches)
-    out = {"faces": len(f), "repeats": args.repeats,
-           "render_labels_s": median_seconds(lambda: render_labels(v, f, gt, 8), args.repeats),
-           "label_comparison_png_s": median_seconds(lambda: label_comparison_png(v, f, pred, gt, names), args.repeats),
-           "confusion_png_s": median_seconds(lambda: confusion_png(confusion, names), args.repeats)}
+    render_labels(v, f, gt, 8)  # warm-up (imports, caches)
+    out = {
+        "faces": len(f),
+        "repeats": args.repeats,
+        "render_labels_s": median_seconds(lambda: render_labels(v, f, gt, 8), args.repeats),
+        "label_comparison_png_s": median_seconds(lambda: label_comparison_png(v, f, pred, gt, names), args.repeats),
+        "confusion_png_s": median_seconds(lambda: confusion_png(confusion, names), args.repeats),
+    }
     print(json.dumps(out, indent=1))
 
 

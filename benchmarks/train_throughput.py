@@ -17,7 +17,8 @@ In one run it measures
   in a fresh process after warm-up steps (so neither model inherits the other's malloc state, which
   changes the fast model's speed by 10-20 %), and the median step time is reported;
 
-(about 2 minutes with the defaults) and prints one row per branch count: forward MFLOP per sample (flops_per_sample), samples/s, achieved
+(about 2 minutes with the defaults) and prints one row per branch count: forward MFLOP per sample
+(flops_per_sample), samples/s, achieved
 GFLOP/s (= 3 x forward FLOPs x samples/s: forward, and backward for inputs and weights), % of the matmul
 peak, for the fast model and the reference, and the fast model's speed-up.
 
@@ -148,17 +149,22 @@ def main(argv=None) -> None:
         args.warmup = 10 if device.type == "cuda" else 3
     if args.worker:
         return worker(args)
-    args.passthrough = [f"--{k.replace('_', '-')}={v}" for k, v in vars(args).items()
-                        if k in ("batch_size", "seconds", "features", "classes", "device", "threads", "rounds",
-                                 "warmup") and v is not None] + (["--malloc-tune"] if args.malloc_tune else [])
+    args.passthrough = [
+        f"--{k.replace('_', '-')}={v}"
+        for k, v in vars(args).items()
+        if k in ("batch_size", "seconds", "features", "classes", "device", "threads", "rounds", "warmup")
+        and v is not None
+    ] + (["--malloc-tune"] if args.malloc_tune else [])
     if args.threads:
         torch.set_num_threads(args.threads)
     n_mm = args.matmul_size or (8192 if device.type == "cuda" else 2048)
     names = ["fast"] + ([] if args.no_reference else ["reference"])
 
     where = torch.cuda.get_device_name(device) if device.type == "cuda" else f"cpu, {torch.get_num_threads()} threads"
-    print(f"device: {where}; torch {torch.__version__}; batch {args.batch_size}, {args.features} features, "
-          f"{args.classes} classes{'; malloc-tune' if args.malloc_tune else ''}")
+    print(
+        f"device: {where}; torch {torch.__version__}; batch {args.batch_size}, {args.features} features, "
+        f"{args.classes} classes{'; malloc-tune' if args.malloc_tune else ''}"
+    )
     if device.type == "cuda":
         print(f"TF32: matmul {torch.backends.cuda.matmul.allow_tf32}, cuDNN {torch.backends.cudnn.allow_tf32}")
     peak_samples = matmul_gflops(device, n_mm)
@@ -169,16 +175,25 @@ def main(argv=None) -> None:
         for _ in range(args.rounds):
             for name in names:
                 times[name] += run_worker(args, name, b)
-        rows.append((b, flops_per_sample(args.features, args.classes, b),
-                     {name: statistics.median(ts) for name, ts in times.items()}))
+        rows.append(
+            (
+                b,
+                flops_per_sample(args.features, args.classes, b),
+                {name: statistics.median(ts) for name, ts in times.items()},
+            )
+        )
 
     peak_samples += matmul_gflops(device, n_mm)
     peak = statistics.median(peak_samples)
-    print(f"fp32 matmul peak: {peak:.1f} GFLOP/s (median of {len(peak_samples)} torch.mm {n_mm}x{n_mm}, "
-          f"before and after; range {min(peak_samples):.1f}-{max(peak_samples):.1f})")
-    print(f"training step: forward + cross-entropy + backward + SGD momentum step; GFLOP/s = 3 x forward "
-          f"FLOPs x samples/s; median step time over ~{args.seconds:g} s per model ({args.rounds} fresh "
-          f"process{'es' if args.rounds > 1 else ''}, {args.warmup} warm-up steps each)")
+    print(
+        f"fp32 matmul peak: {peak:.1f} GFLOP/s (median of {len(peak_samples)} torch.mm {n_mm}x{n_mm}, "
+        f"before and after; range {min(peak_samples):.1f}-{max(peak_samples):.1f})"
+    )
+    print(
+        f"training step: forward + cross-entropy + backward + SGD momentum step; GFLOP/s = 3 x forward "
+        f"FLOPs x samples/s; median step time over ~{args.seconds:g} s per model ({args.rounds} fresh "
+        f"process{'es' if args.rounds > 1 else ''}, {args.warmup} warm-up steps each)"
+    )
     head = f"{'branches':>8} {'fwd MFLOP':>9} | {'fast smp/s':>10} {'GFLOP/s':>8} {'% peak':>6}"
     if len(names) > 1:
         head += f" | {'ref smp/s':>9} {'GFLOP/s':>8} {'% peak':>6} | {'speed-up':>8}"

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections import defaultdict
-from typing import Hashable, Iterable
+from collections.abc import Hashable, Iterable
 
 import numpy as np
 
@@ -39,7 +39,13 @@ def mean_by(values: Iterable[float], keys: Iterable[Hashable]) -> dict[Hashable,
 
 def mesh_scores(meshes, raw_labels, labels) -> list[dict]:
     """One row per test mesh: id, faces, area, accuracy before (`acc_raw`) and after (`acc`) refinement."""
-    return [{"mesh": m.id, "faces": m.n_faces, "area": float(m.face_areas.sum()),
-             "acc_raw": area_weighted_accuracy(raw, m.labels, m.face_areas),
-             "acc": area_weighted_accuracy(lab, m.labels, m.face_areas)}
-            for m, raw, lab in zip(meshes, raw_labels, labels, strict=True)]
+    return [
+        {
+            "mesh": m.id,
+            "faces": m.n_faces,
+            "area": float(m.face_areas.sum()),
+            "acc_raw": area_weighted_accuracy(raw, m.labels, m.face_areas),
+            "acc": area_weighted_accuracy(lab, m.labels, m.face_areas),
+        }
+        for m, raw, lab in zip(meshes, raw_labels, labels, strict=True)
+    ]

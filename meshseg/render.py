@@ -1,7 +1,8 @@
 """Pictures for run tracking: a mesh coloured by predicted vs ground-truth labels, and a confusion matrix.
 
-Plain numpy arrays in, PNG bytes out (upstream of tracking, which logs them). Only matplotlib's object API is used (Figure + FigureCanvasAgg, never
-pyplot): thread-safe, headless, and the process-wide backend is left alone. Meshes are drawn by a small
+Plain numpy arrays in, PNG bytes out (upstream of tracking, which logs them). Only matplotlib's object
+API is used (Figure + FigureCanvasAgg, never pyplot): thread-safe, headless, and the process-wide backend is
+left alone. Meshes are drawn by a small
 vectorised z-buffer rasteriser, so hidden surfaces are exact and 20k faces take milliseconds.
 """
 
@@ -24,8 +25,10 @@ UNLABELLED = np.array([0.6, 0.6, 0.6])
 """Colour of faces whose label is outside [0, n_labels)."""
 
 # tab10 then tab20's light tones, each without its grey: grey is reserved for unlabelled faces.
-_BASE = np.array([c for i, c in enumerate(colormaps["tab10"].colors) if i != 7]
-                 + [c for i, c in enumerate(colormaps["tab20"].colors[1::2]) if i != 7])
+_BASE = np.array(
+    [c for i, c in enumerate(colormaps["tab10"].colors) if i != 7]
+    + [c for i, c in enumerate(colormaps["tab20"].colors[1::2]) if i != 7]
+)
 _MARGIN = 0.04  # fraction of the image left blank on each side of the mesh
 _CHUNK = 1 << 19  # candidate pixels per rasterisation batch: bounds memory when triangles are large
 _EPS = 1e-7  # barycentric tolerance, so pixel centres on a shared edge are never missed
@@ -38,8 +41,10 @@ def label_colors(n: int) -> np.ndarray:
     """
     if n < 0:
         raise ValueError(f"n must be >= 0, got {n}")
-    extra = [colorsys.hsv_to_rgb(0.618034 * k % 1.0, (1.0, 0.6)[k % 2], (0.95, 0.7, 0.5)[k % 3])
-             for k in range(max(0, n - len(_BASE)))]
+    extra = [
+        colorsys.hsv_to_rgb(0.618034 * k % 1.0, (1.0, 0.6)[k % 2], (0.95, 0.7, 0.5)[k % 3])
+        for k in range(max(0, n - len(_BASE)))
+    ]
     return np.vstack([_BASE[:n], np.reshape(extra, (-1, 3))])
 
 
@@ -65,8 +70,14 @@ def _rasterise(x: np.ndarray, y: np.ndarray, z: np.ndarray, size: int) -> np.nda
     c1, c2 = -(a1 * x[:, 0] + b1 * y[:, 0]), -(a2 * x[:, 0] + b2 * y[:, 0])
     dz1, dz2 = z[:, 1] - z[:, 0], z[:, 2] - z[:, 0]
     c1 = np.where(np.isfinite(area), c1, -1.0)
-    coef = np.stack([np.stack([a1, b1, c1], 1), np.stack([a2, b2, c2], 1),
-                     np.stack([a1 * dz1 + a2 * dz2, b1 * dz1 + b2 * dz2, z[:, 0] + c1 * dz1 + c2 * dz2], 1)], 1)
+    coef = np.stack(
+        [
+            np.stack([a1, b1, c1], 1),
+            np.stack([a2, b2, c2], 1),
+            np.stack([a1 * dz1 + a2 * dz2, b1 * dz1 + b2 * dz2, z[:, 0] + c1 * dz1 + c2 * dz2], 1),
+        ],
+        1,
+    )
 
     col0 = np.clip(np.ceil(x.min(1) - 0.5), 0, size).astype(np.int64)
     col1 = np.clip(np.floor(x.max(1) - 0.5), -1, size - 1).astype(np.int64)
@@ -98,8 +109,16 @@ def _rasterise(x: np.ndarray, y: np.ndarray, z: np.ndarray, size: int) -> np.nda
     return face
 
 
-def render_labels(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, n_labels: int, *,
-                  size: int = 320, elev: float = 20, azim: float = -60) -> np.ndarray:
+def render_labels(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    labels: np.ndarray,
+    n_labels: int,
+    *,
+    size: int = 320,
+    elev: float = 20,
+    azim: float = -60,
+) -> np.ndarray:
     """(size, size, 3) uint8 flat-shaded orthographic view, each face in its label's colour, white background.
 
     The camera follows matplotlib's 3D axes (azim about z, elev above the xy plane, degrees); the projected
@@ -153,8 +172,16 @@ def _png(fig: Figure) -> bytes:
     return buf.getvalue()
 
 
-def label_comparison_png(vertices: np.ndarray, faces: np.ndarray, pred: np.ndarray, gt: np.ndarray,
-                         label_names: list[str], *, title: str = "", size: int = 320) -> bytes:
+def label_comparison_png(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    pred: np.ndarray,
+    gt: np.ndarray,
+    label_names: list[str],
+    *,
+    title: str = "",
+    size: int = 320,
+) -> bytes:
     """PNG: the mesh coloured by predicted (left) and ground-truth (right) labels from the same camera, a
     colour legend, and the area-weighted accuracy in the title."""
     n = len(label_names)
@@ -199,8 +226,15 @@ def confusion_png(matrix: np.ndarray, label_names: list[str], *, title: str = ""
     ax.set_ylabel("ground truth")
     if k <= 15:
         for (i, j), value in np.ndenumerate(m):
-            ax.text(j, i, f"{100 * value:.0f}%", ha="center", va="center", fontsize="small",
-                    color="white" if value > 0.5 else "black")
+            ax.text(
+                j,
+                i,
+                f"{100 * value:.0f}%",
+                ha="center",
+                va="center",
+                fontsize="small",
+                color="white" if value > 0.5 else "black",
+            )
     fig.colorbar(im, ax=ax, format=PercentFormatter(xmax=1))
     if title:
         ax.set_title(title)

@@ -38,11 +38,11 @@ log = logging.getLogger("meshseg.reproduce")
 class MissingCell:
     """An incomplete (column, set) and what `meshseg.run` needs to make its missing fold runs."""
 
-    row: str                     # the set's row label
-    column: str                  # the column's key
-    overrides: tuple[str, ...]   # the cell's run overrides (manifest, group, column, then the command line's)
-    category: str                # the dataset's own name for the set
-    folds: tuple[int, ...]       # the folds without a FINISHED run
+    row: str  # the set's row label
+    column: str  # the column's key
+    overrides: tuple[str, ...]  # the cell's run overrides (manifest, group, column, then the command line's)
+    category: str  # the dataset's own name for the set
+    folds: tuple[int, ...]  # the folds without a FINISHED run
 
     def sweep(self) -> list[str]:
         """The `python -m meshseg.run -m` arguments that make exactly the missing folds."""
@@ -51,8 +51,13 @@ class MissingCell:
 
 def missing_cells(table: Table) -> list[MissingCell]:
     """Every incomplete (column, set) of the table, in table order."""
-    return [MissingCell(row.label, c.column.key, tuple(c.overrides), c.category, tuple(c.missing))
-            for row in table.rows if row.kind == "set" for c in row.cells if c.status == "incomplete"]
+    return [
+        MissingCell(row.label, c.column.key, tuple(c.overrides), c.category, tuple(c.missing))
+        for row in table.rows
+        if row.kind == "set"
+        for c in row.cells
+        if c.status == "incomplete"
+    ]
 
 
 @dataclass

@@ -73,8 +73,9 @@ def check_knobs(cfg: DictConfig) -> None:
         raise ConfigError(f"branches={cfg.branches} is not allowed: choose one of {list(BRANCHES)}")
     fixed = cfg.model.get("branches")
     if fixed is not None and cfg.branches != fixed:
-        raise ConfigError(f"branches={cfg.branches} is not allowed with model={cfg.model.name}: "
-                          f"it takes branches={fixed}")
+        raise ConfigError(
+            f"branches={cfg.branches} is not allowed with model={cfg.model.name}: it takes branches={fixed}"
+        )
     if cfg.ring_adjacency not in RING_ADJACENCY:
         raise ConfigError(f"ring_adjacency={cfg.ring_adjacency} is not allowed: choose one of {list(RING_ADJACENCY)}")
     b = cfg.budget
@@ -85,8 +86,10 @@ def check_knobs(cfg: DictConfig) -> None:
     check_refine(cfg.refine)  # before any fold trains, not after
     t = cfg.tracking
     if not (float(t.heartbeat_s) > 0 and float(t.lease_timeout_s) > 2 * float(t.heartbeat_s)):
-        raise ConfigError(f"tracking.heartbeat_s={t.heartbeat_s} must be > 0 and tracking.lease_timeout_s="
-                          f"{t.lease_timeout_s} more than twice it")
+        raise ConfigError(
+            f"tracking.heartbeat_s={t.heartbeat_s} must be > 0 and tracking.lease_timeout_s="
+            f"{t.lease_timeout_s} more than twice it"
+        )
 
 
 def resolve_cell(cfg: DictConfig, dataset: MeshDataset) -> tuple[str, Fold]:
@@ -96,7 +99,10 @@ def resolve_cell(cfg: DictConfig, dataset: MeshDataset) -> tuple[str, Fold]:
     folds = folds_for(dataset, category, cfg.split)
     index = 0 if cfg.fold is None else cfg.fold
     if not (isinstance(index, int) and 0 <= index < len(folds)):
-        raise ConfigError(f"fold={cfg.fold} is out of range: split {split_name(cfg.split)} of {category} has folds 0..{len(folds) - 1}")
+        raise ConfigError(
+            f"fold={cfg.fold} is out of range: "
+            f"split {split_name(cfg.split)} of {category} has folds 0..{len(folds) - 1}"
+        )
     return category, folds[index]
 
 
@@ -138,11 +144,17 @@ def _skipped(name: str, chash: str, holder) -> float:
     """Log why a fold is not run (its config is FINISHED, or a live process runs it); its accuracy or NaN."""
     acc = holder.data.metrics.get("test_acc", float("nan"))
     if holder.info.status == "FINISHED":
-        log.info("skip: %s — config %s already has FINISHED run %s (test_acc %.4f)", name, chash,
-                 holder.info.run_id, acc)
+        log.info(
+            "skip: %s — config %s already has FINISHED run %s (test_acc %.4f)", name, chash, holder.info.run_id, acc
+        )
     else:
-        log.info("skip: %s — config %s is being run by run %s (%s)", name, chash, holder.info.run_id,
-                 holder.data.tags.get("lease.owner", "?"))
+        log.info(
+            "skip: %s — config %s is being run by run %s (%s)",
+            name,
+            chash,
+            holder.info.run_id,
+            holder.data.tags.get("lease.owner", "?"),
+        )
     return acc
 
 
@@ -174,10 +186,22 @@ def run(cfg: DictConfig) -> float:
     if done is not None:
         return _skipped(name, chash, done)
 
-    tags = {"dataset": dataset.name, "category": category, "model": cfg.model.name, "branches": cfg.branches,
-            "features": features.name, "split": split_name(cfg.split), "fold": fold.index, "refine": cfg.refine.name,
-            "budget": cfg.budget.name, "config_hash": chash, "git_sha": git_sha(), "data_hash": dataset.data_hash,
-            "seed": cfg.seed, "accelerator": cfg.trainer.accelerator}
+    tags = {
+        "dataset": dataset.name,
+        "category": category,
+        "model": cfg.model.name,
+        "branches": cfg.branches,
+        "features": features.name,
+        "split": split_name(cfg.split),
+        "fold": fold.index,
+        "refine": cfg.refine.name,
+        "budget": cfg.budget.name,
+        "config_hash": chash,
+        "git_sha": git_sha(),
+        "data_hash": dataset.data_hash,
+        "seed": cfg.seed,
+        "accelerator": cfg.trainer.accelerator,
+    }
     log.info("run: %s (config %s, %d train / %d test meshes)", name, chash, len(fold.train), len(fold.test))
     run_id = None
     if cfg.tracking.skip_finished:  # claim the config: a concurrent sweep may have taken it since the check
@@ -186,25 +210,48 @@ def run(cfg: DictConfig) -> float:
             return _skipped(name, chash, holder)
     with tracker.run(name, tags, flatten(config), run_id) as run_id:
         source = FeatureSource(dataset, category, features, cfg.paths.cache_dir, cfg.branches, cfg.ring_adjacency)
-        preds = fit_predict(source, fold, cfg.model, cfg.budget, cfg.trainer, cfg.seed, cfg.workers,
-                            logger=tracker.lightning_logger(run_id))
+        preds = fit_predict(
+            source,
+            fold,
+            cfg.model,
+            cfg.budget,
+            cfg.trainer,
+            cfg.seed,
+            cfg.workers,
+            logger=tracker.lightning_logger(run_id),
+        )
         raw = [p.argmax(axis=1) for p in preds.probabilities]
         agd = [refine_features(m, cfg) for m in preds.meshes]
         labels = [refine_labels(m, p, cfg.refine, f) for m, p, f in zip(preds.meshes, preds.probabilities, agd)]
         rows = mesh_scores(preds.meshes, raw, labels)
-        metrics = {"test_acc": np.mean([r["acc"] for r in rows]), "test_acc_raw": np.mean([r["acc_raw"] for r in rows]),
-                   **{f"time_{k}_s": v for k, v in preds.timings.items()}, **{f"n_{k}": v for k, v in preds.counts.items()},
-                   "train_samples_per_s": preds.counts["train_samples"] * preds.counts["epochs"] / preds.timings["train"]}
+        metrics = {
+            "test_acc": np.mean([r["acc"] for r in rows]),
+            "test_acc_raw": np.mean([r["acc_raw"] for r in rows]),
+            **{f"time_{k}_s": v for k, v in preds.timings.items()},
+            **{f"n_{k}": v for k, v in preds.counts.items()},
+            "train_samples_per_s": preds.counts["train_samples"] * preds.counts["epochs"] / preds.timings["train"],
+        }
         tracker.log_metrics(run_id, metrics)
         predictions = {}
         for m, p, r, lab in zip(preds.meshes, preds.probabilities, raw, labels):
-            predictions.update({f"labels_{m.id}": lab.astype(np.int16), f"labels_raw_{m.id}": r.astype(np.int16),
-                                f"probs_{m.id}": p.astype(np.float16)})
+            predictions.update(
+                {
+                    f"labels_{m.id}": lab.astype(np.int16),
+                    f"labels_raw_{m.id}": r.astype(np.int16),
+                    f"probs_{m.id}": p.astype(np.float16),
+                }
+            )
         tracker.log_fold(run_id, OmegaConf.to_yaml(config), rows, predictions)
         if cfg.tracking.renders:
             tracker.log_pictures(run_id, preds.meshes, labels, rows, int(cfg.tracking.renders))
-    log.info("done: %s test_acc %.4f (raw %.4f), train %.1f s, run %s", name, metrics["test_acc"],
-             metrics["test_acc_raw"], preds.timings["train"], run_id)
+    log.info(
+        "done: %s test_acc %.4f (raw %.4f), train %.1f s, run %s",
+        name,
+        metrics["test_acc"],
+        metrics["test_acc_raw"],
+        preds.timings["train"],
+        run_id,
+    )
     return float(metrics["test_acc"])
 
 

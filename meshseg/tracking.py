@@ -20,9 +20,9 @@ import subprocess
 import tempfile
 import time
 import traceback
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
@@ -31,14 +31,25 @@ from meshseg.errors import TrackingError
 log = logging.getLogger(__name__)
 
 
-
 class FoldRecord:
     """What one fold's run records, defined once: `meshseg.run` writes it; the report, `reproduce` and
     the notebooks read it by these names."""
 
     #: tags every fold run carries (the report selects runs by these)
-    TAGS = ("dataset", "category", "model", "branches", "features", "split", "fold", "refine", "budget",
-            "config_hash", "git_sha", "data_hash")
+    TAGS = (
+        "dataset",
+        "category",
+        "model",
+        "branches",
+        "features",
+        "split",
+        "fold",
+        "refine",
+        "budget",
+        "config_hash",
+        "git_sha",
+        "data_hash",
+    )
     #: the two accuracies every fold logs (area-weighted mean over the test meshes), after and before refinement
     ACC, ACC_RAW = "test_acc", "test_acc_raw"
     #: artifact: the resolved config (YAML)
@@ -72,8 +83,7 @@ def config_hash(config: dict, exclude=(), extra: dict | None = None) -> str:
     """sha256 (16 hex) of the config's leaves except the `exclude` keys (a key excludes its subtree),
     plus `extra` (e.g. the data hash)."""
     prefixes = tuple(exclude)
-    leaves = {k: v for k, v in flatten(config).items()
-              if not any(k == p or k.startswith(p + ".") for p in prefixes)}
+    leaves = {k: v for k, v in flatten(config).items() if not any(k == p or k.startswith(p + ".") for p in prefixes)}
     blob = json.dumps({"config": leaves, "extra": extra or {}}, sort_keys=True, default=str)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
@@ -96,9 +106,16 @@ def git_sha() -> str:
     """The package's git commit, '+dirty' when tracked files differ from it; 'unknown' outside git."""
     root = Path(__file__).resolve().parents[1]
     try:
-        sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
-                               capture_output=True, text=True, check=True).stdout.strip()
+        sha = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            cwd=root,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
     return sha + ("+dirty" if dirty else "")
@@ -115,11 +132,13 @@ def store_uri(uri: str) -> str:
 
     scheme = urlparse(uri).scheme.split("+")[0]
     if scheme not in ("", *STORE_SCHEMES) or (scheme == "" and "://" in uri):
-        raise TrackingError(f"tracking.uri={uri}: unknown store scheme {scheme!r}; use sqlite:///PATH/mlflow.db, "
-                            f"http(s)://HOST:PORT (a tracking server) or one of {list(STORE_SCHEMES)}")
+        raise TrackingError(
+            f"tracking.uri={uri}: unknown store scheme {scheme!r}; use sqlite:///PATH/mlflow.db, "
+            f"http(s)://HOST:PORT (a tracking server) or one of {list(STORE_SCHEMES)}"
+        )
     prefix = "sqlite:///"
     if uri.startswith(prefix):
-        path = Path(uri[len(prefix):]).expanduser().absolute()
+        path = Path(uri[len(prefix) :]).expanduser().absolute()
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
         except OSError as e:
@@ -247,7 +266,7 @@ class Tracker:
         if self.uri.startswith("sqlite:///"):
             # MLflow creates and migrates a new sqlite schema on first use; two processes doing that at
             # once collide ("duplicate column name"), so the first use happens under a lock beside the file.
-            with _file_lock(Path(self.uri[len("sqlite:///"):] + ".lock")):
+            with _file_lock(Path(self.uri[len("sqlite:///") :] + ".lock")):
                 self.client = MlflowClient(tracking_uri=self.uri)
                 self.experiment_id = self._experiment(experiment, artifact_dir)
         else:
@@ -260,7 +279,11 @@ class Tracker:
         exp = _retry(lambda: self.client.get_experiment_by_name(name), "get experiment")
         if exp is not None:
             return exp.experiment_id
-        location = Path(artifact_dir).expanduser().absolute().as_uri() if artifact_dir and self.uri.startswith("sqlite") else None
+        location = (
+            Path(artifact_dir).expanduser().absolute().as_uri()
+            if artifact_dir and self.uri.startswith("sqlite")
+            else None
+        )
         try:
             return self.client.create_experiment(name, artifact_location=location)
         except MlflowException:  # another worker created it first
@@ -281,8 +304,9 @@ class Tracker:
         runs = self.runs(f"tags.config_hash = '{config_hash}' and attributes.status = 'FINISHED'")
         return runs[0] if runs else None
 
-    def claim(self, name: str, tags: dict, heartbeat_s: float = 30.0,
-              lease_timeout_s: float = 120.0) -> tuple[str | None, object | None]:
+    def claim(
+        self, name: str, tags: dict, heartbeat_s: float = 30.0, lease_timeout_s: float = 120.0
+    ) -> tuple[str | None, object | None]:
         """Create this config's run, RUNNING under a lease, unless the config is taken: returns (run id,
         None), or (None, the holder) when another run of the same `config_hash` is FINISHED or held by a
         live process.
@@ -293,16 +317,23 @@ class Tracker:
         `lease_timeout_s` (and, on this host, while its process exists); a dead one is taken over and
         its run marked KILLED."""
         chash = tags["config_hash"]
-        lease = {LEASE_OWNER: _owner(), LEASE_HEARTBEAT: f"{time.time():.0f}",
-                 LEASE_TIMEOUT: f"{lease_timeout_s:g}", LEASE_INTERVAL: f"{heartbeat_s:g}"}
+        lease = {
+            LEASE_OWNER: _owner(),
+            LEASE_HEARTBEAT: f"{time.time():.0f}",
+            LEASE_TIMEOUT: f"{lease_timeout_s:g}",
+            LEASE_INTERVAL: f"{heartbeat_s:g}",
+        }
         mine = self._create(name, {**tags, **lease})
         key = (mine.info.start_time, mine.info.run_id)
         others = [r for r in self.runs(f"tags.config_hash = '{chash}'") if r.info.run_id != mine.info.run_id]
         holder = next((r for r in others if r.info.status == "FINISHED"), None)
         if holder is None:
             live = [r for r in others if r.info.status == "RUNNING" and _lease_alive(r)]
-            holder = min((r for r in live if (r.info.start_time, r.info.run_id) < key),
-                         key=lambda r: (r.info.start_time, r.info.run_id), default=None)
+            holder = min(
+                (r for r in live if (r.info.start_time, r.info.run_id) < key),
+                key=lambda r: (r.info.start_time, r.info.run_id),
+                default=None,
+            )
         if holder is not None:
             self.client.delete_run(mine.info.run_id)
             return None, holder
@@ -329,7 +360,7 @@ class Tracker:
         try:
             items = [Param(k, str(v)[:6000]) for k, v in params.items()]
             for i in range(0, len(items), 100):
-                _retry(lambda: self.client.log_batch(run_id, params=items[i : i + 100]), "log params")
+                _retry(lambda i=i: self.client.log_batch(run_id, params=items[i : i + 100]), "log params")
             yield run_id
         except KeyboardInterrupt:
             self._end(beat, run_id, "KILLED")
@@ -396,8 +427,11 @@ class Tracker:
             for i in picks:
                 m = meshes[i]
                 path = d / f"mesh_{m.id}.png"
-                path.write_bytes(label_comparison_png(m.vertices, m.faces, labels[i], m.labels, names,
-                                                      title=f"{m.category} mesh {m.id}"))
+                path.write_bytes(
+                    label_comparison_png(
+                        m.vertices, m.faces, labels[i], m.labels, names, title=f"{m.category} mesh {m.id}"
+                    )
+                )
                 self.client.log_artifact(run_id, str(path), "renders")
             (d / "confusion.png").write_bytes(confusion_png(confusion, names, title="area-weighted, all test meshes"))
             self.client.log_artifact(run_id, str(d / "confusion.png"))

@@ -42,14 +42,23 @@ def coseg(cache_dir):
 
 #: run overrides of the smoke store: experiments/synthetic.yaml on 5 meshes per category, 2 folds,
 #: three cheap feature groups, budget=smoke (the same overrides make the report find its runs)
-SMOKE = ["dataset.meshes_per_category=5", "features.groups=[curvature,pca,gc]", "features.name=local",
-         "budget=smoke", "split.k=2"]
+SMOKE = [
+    "dataset.meshes_per_category=5",
+    "features.groups=[curvature,pca,gc]",
+    "features.name=local",
+    "budget=smoke",
+    "split.k=2",
+]
 
 
 def smoke_env(root: Path, cache_dir: Path) -> dict:
     """Environment pointing meshseg at one store under `root` and the session's feature cache."""
-    return {**os.environ, "MESHSEG_CACHE_DIR": str(cache_dir), "MESHSEG_MLFLOW_DIR": str(root / "mlruns"),
-            "MESHSEG_LOG_DIR": str(root / "logs")}
+    return {
+        **os.environ,
+        "MESHSEG_CACHE_DIR": str(cache_dir),
+        "MESHSEG_MLFLOW_DIR": str(root / "mlruns"),
+        "MESHSEG_LOG_DIR": str(root / "logs"),
+    }
 
 
 @pytest.fixture(scope="session")
@@ -62,7 +71,13 @@ def smoke_store(tmp_path_factory, cache_dir) -> Path:
     root = tmp_path_factory.mktemp("smoke")
     env = smoke_env(root, cache_dir)
     for sweep in (["model=cnn1d", "branches=1,3"], ["model=rf"]):
-        r = subprocess.run([sys.executable, "-m", "meshseg.run", "-m", *SMOKE, *sweep], cwd=REPO, env=env,
-                           capture_output=True, text=True, timeout=900)
+        r = subprocess.run(
+            [sys.executable, "-m", "meshseg.run", "-m", *SMOKE, *sweep],
+            cwd=REPO,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=900,
+        )
         assert r.returncode == 0, r.stderr[-3000:]
     return root / "mlruns"

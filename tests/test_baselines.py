@@ -9,6 +9,7 @@ import pytest
 import torch
 from mlflow import MlflowClient
 from sklearn.decomposition import PCA
+from test_run import compose_run
 
 from meshseg.data.datasets import build_dataset
 from meshseg.data.splits import Fold
@@ -17,11 +18,17 @@ from meshseg.models.forest import RandomForest
 from meshseg.models.pca_nn import principal_axes
 from meshseg.training.data import FeatureSource, build_train
 from meshseg.training.fit import fit_predict
-from test_run import compose_run
 
 BASELINES = ["pca_nn", "ae_nn", "ae_rf", "rf"]
-SMALL = ["dataset.meshes_per_category=5", "dataset.max_faces=3000", "features.groups=[curvature,pca,gc]",
-         "features.name=local", "budget=smoke", "trainer.threads=1", "category=figure"]
+SMALL = [
+    "dataset.meshes_per_category=5",
+    "dataset.max_faces=3000",
+    "features.groups=[curvature,pca,gc]",
+    "features.name=local",
+    "budget=smoke",
+    "trainer.threads=1",
+    "category=figure",
+]
 N_CLASSES = 4  # figure: head, torso, arm, leg
 TRAIN = ("1", "2", "3")
 
@@ -52,6 +59,7 @@ def fit(source, model, test=("0",), seed=0, *overrides):
 
 # --- configuration --------------------------------------------------------------------------------
 
+
 @pytest.mark.parametrize("model", BASELINES)
 def test_each_baseline_is_single_scale_and_named(model):
     cfg = compose_run(f"model={model}")
@@ -62,7 +70,11 @@ def test_pca_nn_with_three_branches_is_rejected(tmp_path, cache_dir):
     from meshseg.run import run
 
     with pytest.raises(ValueError, match="branches=3 is not allowed with model=pca_nn: it takes branches=1"):
-        run(compose_run(*SMALL, "model=pca_nn", "branches=3", f"paths.mlflow_dir={tmp_path}", f"paths.cache_dir={cache_dir}"))
+        run(
+            compose_run(
+                *SMALL, "model=pca_nn", "branches=3", f"paths.mlflow_dir={tmp_path}", f"paths.cache_dir={cache_dir}"
+            )
+        )
     assert list(tmp_path.iterdir()) == []  # refused before any run or store was made
 
 
@@ -76,6 +88,7 @@ def test_unknown_kind_is_rejected(source):
 
 
 # --- the CLI path: every baseline ends FINISHED with a test accuracy --------------------------------
+
 
 @pytest.mark.parametrize("model, extra", [("pca_nn", []), ("ae_nn", []), ("ae_rf", []), ("rf", ["features=cf0_5"])])
 def test_baseline_runs_through_meshseg_run(paths, model, extra):
@@ -100,6 +113,7 @@ def test_baseline_runs_through_meshseg_run(paths, model, extra):
 
 # --- what each model computes ---------------------------------------------------------------------
 
+
 def test_autoencoder_codes_have_400_then_200_columns_and_the_stack_is_fine_tuned_from_them(source):
     preds = fit(source, "ae_nn")
     ae1, ae2, net = preds.parts["ae1"], preds.parts["ae2"], preds.parts["net"]
@@ -116,7 +130,9 @@ def test_pca_is_fitted_on_the_training_faces_only(source):
     b = fit(source, "pca_nn", ("4",)).parts["net"].pca
     assert torch.equal(a.mean, b.mean) and torch.equal(a.components, b.components)
     C = a.components.double()
-    assert C.shape == (50, source.features.dim) and torch.allclose(C @ C.T, torch.eye(50, dtype=torch.float64), atol=1e-5)
+    assert C.shape == (50, source.features.dim) and torch.allclose(
+        C @ C.T, torch.eye(50, dtype=torch.float64), atol=1e-5
+    )
     # the training faces as fit_predict sampled them (same seed and budget): scikit-learn's PCA of them
     X = build_train(source, TRAIN, 64, 0).X[:, 0]
     ref = PCA(50).fit(X.astype(np.float64))

@@ -26,14 +26,17 @@ def edited(monkeypatch):
     cache._code_version.cache_clear()
 
 
-@pytest.mark.parametrize("group, module", [
-    ("pca", "meshseg.features.curvature"),          # geodesic balls
-    ("shape_context", "meshseg.features.agd"),      # sampled geodesics
-    ("dms", "meshseg.features.shape_diameter"),     # rays
-    ("spin_images", "meshseg.features.shape_diameter"),
-    ("pca", "meshseg.features.geometry"),
-    ("pca", "meshseg.data.mesh"),                   # face areas
-])
+@pytest.mark.parametrize(
+    "group, module",
+    [
+        ("pca", "meshseg.features.curvature"),  # geodesic balls
+        ("shape_context", "meshseg.features.agd"),  # sampled geodesics
+        ("dms", "meshseg.features.shape_diameter"),  # rays
+        ("spin_images", "meshseg.features.shape_diameter"),
+        ("pca", "meshseg.features.geometry"),
+        ("pca", "meshseg.data.mesh"),  # face areas
+    ],
+)
 def test_editing_code_a_group_runs_changes_its_version(edited, group, module):
     before = cache.code_version(get_group(group))
     edited(module)
@@ -48,6 +51,10 @@ def test_editing_unrelated_code_keeps_the_version(edited):
 
 def test_dependencies_are_transitive_and_skip_packages():
     deps = cache.dependencies("meshseg.features.pca")
-    assert {"meshseg.features.pca", "meshseg.features.curvature", "meshseg.features.geometry",
-            "meshseg.data.mesh"} <= set(deps)
+    assert {
+        "meshseg.features.pca",
+        "meshseg.features.curvature",
+        "meshseg.features.geometry",
+        "meshseg.data.mesh",
+    } <= set(deps)
     assert "meshseg.features" not in deps and "meshseg.features.agd" not in deps

@@ -4,16 +4,21 @@ import subprocess
 import sys
 
 import pytest
+from conftest import COSEG_ARCHIVE, REPO, require
 from hydra import compose, initialize_config_dir
 
-from conftest import COSEG_ARCHIVE, REPO, require
 from meshseg import CONF_DIR
 from meshseg.data.datasets import COSEG, PSB, Synthetic, build_dataset
 
 
 def run(*overrides, cache):
-    return subprocess.run([sys.executable, "-m", "meshseg.data", f"paths.cache_dir={cache}", *overrides],
-                          cwd=REPO, capture_output=True, text=True, timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "meshseg.data", f"paths.cache_dir={cache}", *overrides],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
 
 
 @pytest.mark.parametrize("dataset, cls", [("synthetic", Synthetic), ("psb", PSB), ("coseg", COSEG)])
@@ -53,4 +58,7 @@ def test_summary_coseg_archive(tmp_path):
 def test_summary_bad_root_is_one_clear_error(tmp_path):
     r = run("dataset=psb", f"dataset.root={tmp_path}/missing.tar.xz", cache=tmp_path)
     assert r.returncode == 1
-    assert r.stderr.strip() == f"error: {tmp_path}/missing.tar.xz: dataset root does not exist (give a folder or an archive with dataset.root=PATH)"
+    assert (
+        r.stderr.strip() == f"error: {tmp_path}/missing.tar.xz: dataset root does not exist "
+        "(give a folder or an archive with dataset.root=PATH)"
+    )

@@ -22,15 +22,29 @@ pytestmark = pytest.mark.filterwarnings("ignore:Using padding='same' with even k
 class ReferenceMultiBranchCNN1D(nn.Module):
     """The straightforward network, same constructor and input/output as MultiBranchCNN1D."""
 
-    def __init__(self, n_features: int, n_classes: int, branches: int = 3, channels=(16, 32), kernels=(15, 11),
-                 hidden: int = 172, negative_slope: float = 0.2, dropout: float = 0.5, pool: int = 2):
+    def __init__(
+        self,
+        n_features: int,
+        n_classes: int,
+        branches: int = 3,
+        channels=(16, 32),
+        kernels=(15, 11),
+        hidden: int = 172,
+        negative_slope: float = 0.2,
+        dropout: float = 0.5,
+        pool: int = 2,
+    ):
         super().__init__()
 
         def branch() -> nn.Sequential:
             layers, c_in = [], 1
             for c_out, k in zip(channels, kernels):
-                layers += [nn.Conv1d(c_in, c_out, k, padding="same"), nn.BatchNorm1d(c_out),
-                           nn.LeakyReLU(negative_slope), nn.MaxPool1d(pool)]
+                layers += [
+                    nn.Conv1d(c_in, c_out, k, padding="same"),
+                    nn.BatchNorm1d(c_out),
+                    nn.LeakyReLU(negative_slope),
+                    nn.MaxPool1d(pool),
+                ]
                 c_in = c_out
             return nn.Sequential(*layers)
 
@@ -38,8 +52,13 @@ class ReferenceMultiBranchCNN1D(nn.Module):
         length = n_features
         for _ in channels:
             length //= pool
-        self.head = nn.Sequential(nn.Flatten(), nn.Linear(branches * channels[-1] * length, hidden),
-                                  nn.LeakyReLU(negative_slope), nn.Dropout(dropout), nn.Linear(hidden, n_classes))
+        self.head = nn.Sequential(
+            nn.Flatten(),
+            nn.Linear(branches * channels[-1] * length, hidden),
+            nn.LeakyReLU(negative_slope),
+            nn.Dropout(dropout),
+            nn.Linear(hidden, n_classes),
+        )
 
     def feature_maps(self, x: torch.Tensor) -> torch.Tensor:
         return torch.cat([b(x[:, k : k + 1]) for k, b in enumerate(self.branches)], dim=1)
@@ -57,16 +76,22 @@ def _pairs(fast: MultiBranchCNN1D, ref: ReferenceMultiBranchCNN1D, grads: bool =
         convs = [m for m in branch if isinstance(m, nn.Conv1d)]
         bns = [m for m in branch if isinstance(m, nn.BatchNorm1d)]
         for i, (layer, conv, bn) in enumerate(zip(fast.layers, convs, bns, strict=True)):
-            out |= {f"branch{k}.conv{i}.weight": (get(layer.weight)[k], get(conv.weight)),
-                    f"branch{k}.conv{i}.bias": (get(layer.bias)[k], get(conv.bias)),
-                    f"branch{k}.bn{i}.weight": (get(layer.bn_weight)[k], get(bn.weight)),
-                    f"branch{k}.bn{i}.bias": (get(layer.bn_bias)[k], get(bn.bias))}
+            out |= {
+                f"branch{k}.conv{i}.weight": (get(layer.weight)[k], get(conv.weight)),
+                f"branch{k}.conv{i}.bias": (get(layer.bias)[k], get(conv.bias)),
+                f"branch{k}.bn{i}.weight": (get(layer.bn_weight)[k], get(bn.weight)),
+                f"branch{k}.bn{i}.bias": (get(layer.bn_bias)[k], get(bn.bias)),
+            }
             if not grads:
-                out |= {f"branch{k}.bn{i}.running_mean": (layer.running_mean[k], bn.running_mean),
-                        f"branch{k}.bn{i}.running_var": (layer.running_var[k], bn.running_var)}
+                out |= {
+                    f"branch{k}.bn{i}.running_mean": (layer.running_mean[k], bn.running_mean),
+                    f"branch{k}.bn{i}.running_var": (layer.running_var[k], bn.running_var),
+                }
     for name, mine, theirs in (("fc1", fast.fc1, ref.head[1]), ("fc2", fast.fc2, ref.head[4])):
-        out |= {f"{name}.weight": (get(mine.weight), get(theirs.weight)),
-                f"{name}.bias": (get(mine.bias), get(theirs.bias))}
+        out |= {
+            f"{name}.weight": (get(mine.weight), get(theirs.weight)),
+            f"{name}.bias": (get(mine.bias), get(theirs.bias)),
+        }
     return out
 
 
@@ -170,7 +195,7 @@ def test_gradients_and_running_stats_match_reference(pair):
     fast, ref, x, y = pair
     fast.train(), ref.train()
     opts = [torch.optim.SGD(m.parameters(), lr=0.1, momentum=0.9) for m in (fast, ref)]
-    for model, opt in zip((fast, ref), opts):
+    for model in (fast, ref):
         torch.manual_seed(1)
         F.cross_entropy(model(x), y).backward()
     grads = _pairs(fast, ref, grads=True)

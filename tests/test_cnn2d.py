@@ -11,11 +11,11 @@ import sys
 import pytest
 import torch
 import torch.nn.functional as F
+from conftest import REPO
 from hydra import compose, initialize_config_dir
 from mlflow import MlflowClient
 from torch import nn
 
-from conftest import REPO
 from meshseg import CONF_DIR
 from meshseg.models.cnn2d import EVAL_CHUNK, ToG15CNN2D
 
@@ -26,6 +26,7 @@ def compose_run(*overrides):
 
 
 # --- the network -----------------------------------------------------------------------------------
+
 
 def test_default_shapes():
     net = ToG15CNN2D(600, 5)
@@ -166,6 +167,7 @@ def test_invalid_arguments():
 
 # --- configuration and the CLI ---------------------------------------------------------------------
 
+
 def test_config_selects_600_features_and_one_branch():
     cfg = compose_run("model=cnn2d")
     assert (cfg.model.name, cfg.features.name, cfg.branches) == ("cnn2d", "f600", 1)
@@ -185,18 +187,35 @@ def test_config_builds_the_network():
 @pytest.fixture
 def env(tmp_path, cache_dir):
     """Subprocess environment: this test's MLflow store and logs, the session's feature cache."""
-    return {**os.environ, "MESHSEG_CACHE_DIR": str(cache_dir), "MESHSEG_MLFLOW_DIR": str(tmp_path / "mlruns"),
-            "MESHSEG_LOG_DIR": str(tmp_path / "logs"), "OMP_NUM_THREADS": "1"}
+    return {
+        **os.environ,
+        "MESHSEG_CACHE_DIR": str(cache_dir),
+        "MESHSEG_MLFLOW_DIR": str(tmp_path / "mlruns"),
+        "MESHSEG_LOG_DIR": str(tmp_path / "logs"),
+        "OMP_NUM_THREADS": "1",
+    }
 
 
 # 5 small tables: the real f600 features in a few seconds
-SMALL = ["budget=smoke", "dataset.meshes_per_category=5", "dataset.max_faces=2000", "category=table",
-         "trainer.threads=1", "workers=1"]
+SMALL = [
+    "budget=smoke",
+    "dataset.meshes_per_category=5",
+    "dataset.max_faces=2000",
+    "category=table",
+    "trainer.threads=1",
+    "workers=1",
+]
 
 
 def meshseg_run(env, *overrides):
-    return subprocess.run([sys.executable, "-m", "meshseg.run", *overrides], cwd=REPO, capture_output=True,
-                          text=True, timeout=300, env=env)
+    return subprocess.run(
+        [sys.executable, "-m", "meshseg.run", *overrides],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=env,
+    )
 
 
 def test_cli_run_finishes_tagged_cnn2d_f600_one_branch(env, tmp_path):

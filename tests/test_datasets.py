@@ -54,10 +54,13 @@ def test_coseg_fragment(coseg):
 
 
 def test_psb_vocabulary_is_per_category_union(tmp_path):
-    root = make_psb(tmp_path / "db", {
-        ("Cup", "2"): (TETRA, "handle\n1\nbody\n2 3 4\n"),
-        ("Cup", "10"): (TETRA, "body\n1 2 3 4\n"),
-    })
+    root = make_psb(
+        tmp_path / "db",
+        {
+            ("Cup", "2"): (TETRA, "handle\n1\nbody\n2 3 4\n"),
+            ("Cup", "10"): (TETRA, "body\n1 2 3 4\n"),
+        },
+    )
     ds = PSB(str(root), str(tmp_path / "cache"))
     assert ds.categories == ["Cup"] and ds.mesh_ids("Cup") == ["2", "10"]
     assert ds.label_names("Cup") == ("body", "handle")
@@ -67,13 +70,16 @@ def test_psb_vocabulary_is_per_category_union(tmp_path):
         ds.mesh_ids("Mug")
 
 
-@pytest.mark.parametrize("off, labels, problem", [
-    (TETRA.replace("3 1 2 3", "3 1 2 9"), "a\n1 2 3 4\n", "face 3 has vertex index 9 outside 0..3"),
-    (TETRA.replace("0 1 0\n", "0 nan 0\n"), "a\n1 2 3 4\n", "NaN/inf"),
-    (TETRA, "a\n1 2 3\n", "1 of 4 faces have no label"),
-    (TETRA, "a\n1 2 3 4\nb\n4\n", "face 4 is labelled twice"),
-    (TETRA[:40], "a\n1 2 3 4\n", "truncated"),
-])
+@pytest.mark.parametrize(
+    "off, labels, problem",
+    [
+        (TETRA.replace("3 1 2 3", "3 1 2 9"), "a\n1 2 3 4\n", "face 3 has vertex index 9 outside 0..3"),
+        (TETRA.replace("0 1 0\n", "0 nan 0\n"), "a\n1 2 3 4\n", "NaN/inf"),
+        (TETRA, "a\n1 2 3\n", "1 of 4 faces have no label"),
+        (TETRA, "a\n1 2 3 4\nb\n4\n", "face 4 is labelled twice"),
+        (TETRA[:40], "a\n1 2 3 4\n", "truncated"),
+    ],
+)
 def test_bad_mesh_in_dataset_names_the_file(tmp_path, off, labels, problem):
     root = make_psb(tmp_path / "db", {("Cup", "1"): (off, labels)})
     ds = PSB(str(root), str(tmp_path / "cache"))

@@ -1,17 +1,21 @@
 """Geodesic features: shape context (`shape_context`, 270) and average geodesic distance (`agd`, 15)."""
 
+import conftest
 import numpy as np
 import pytest
 import trimesh
 from scipy.sparse.csgraph import dijkstra
 
-import conftest
 from meshseg.features import agd, geometry, shape_context
 from meshseg.features.registry import GROUPS
 
 REFERENCE = conftest.SHARED / "data/reference/kalogerakis2010"
 CALIBRATION = GROUPS["shape_context"].defaults["scale_calibration"]
-COLUMNS = [line.split("\t")[1].strip() for line in (REFERENCE / "columns.txt").read_text().splitlines()] if (REFERENCE / "columns.txt").exists() else None
+COLUMNS = (
+    [line.split("\t")[1].strip() for line in (REFERENCE / "columns.txt").read_text().splitlines()]
+    if (REFERENCE / "columns.txt").exists()
+    else None
+)
 
 
 def bumpy_sphere(subdivisions=2, seed=0):
@@ -41,7 +45,9 @@ def tube(radius=0.5, length=6.0, n_around=24):
     t = 2 * np.pi * np.arange(n_around) / n_around
     z = np.linspace(-length / 2, length / 2, n_along)
     shift = (np.arange(n_along) % 2)[:, None] * np.pi / n_around  # staggered rings
-    V = np.stack([radius * np.cos(t + shift), radius * np.sin(t + shift), np.broadcast_to(z[:, None], (n_along, n_around))], -1).reshape(-1, 3)
+    V = np.stack(
+        [radius * np.cos(t + shift), radius * np.sin(t + shift), np.broadcast_to(z[:, None], (n_along, n_around))], -1
+    ).reshape(-1, 3)
     ring = np.arange(n_around)
     F = []
     for k in range(n_along - 1):
@@ -96,7 +102,9 @@ def test_disconnected_and_degenerate_meshes_stay_finite():
     V1, F1 = bumpy_sphere(2, seed=0)
     V2, F2 = bumpy_sphere(1, seed=1)
     V = np.r_[V1, V2 * 0.5 + [4.0, 0, 0], [[9, 9, 9], [9, 9, 9], [9, 9, 9]]]
-    F = np.r_[F1, F2 + len(V1), [[len(V1) + len(V2), len(V1) + len(V2) + 1, len(V1) + len(V2) + 2]]]  # + a zero-area face alone
+    F = np.r_[
+        F1, F2 + len(V1), [[len(V1) + len(V2), len(V1) + len(V2) + 1, len(V1) + len(V2) + 2]]
+    ]  # + a zero-area face alone
     F = np.r_[F, F[:1][:, [0, 0, 1]]]  # and a zero-area face glued to the first sphere
     for name in ("agd", "shape_context"):
         X = GROUPS[name](V, F, n_samples=64)
@@ -267,7 +275,10 @@ def test_matches_kalogerakis_reference_airplane(psb):
     mesh = psb.load("Airplane", "61")
     assert len(mesh.faces) == ref["n_faces"]
     idx = ref["faces"]
-    for name, cols, median, p10 in (("shape_context", slice(112, 382), 0.975, 0.87), ("agd", slice(382, 396), 0.995, 0.99)):
+    for name, cols, median, p10 in (
+        ("shape_context", slice(112, 382), 0.975, 0.87),
+        ("agd", slice(382, 396), 0.995, 0.99),
+    ):
         X = GROUPS[name](mesh.vertices, mesh.faces)[idx].astype(np.float64)
         Y = ref["X"][:, cols].astype(np.float64)
         live = Y.std(axis=0) > 0  # the original leaves a few rare bins empty on these faces

@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-import scipy.sparse as sp
 from omegaconf import OmegaConf
 
 from meshseg.features import geometry
@@ -57,8 +56,9 @@ def test_vertex_steps_reach_further():
 
 
 def small_set(**params):
-    return FeatureSet.from_config(OmegaConf.create(
-        {"name": "t", "groups": ["test_area", "test_centre[1:2]", "test_centre"], "params": params}))
+    return FeatureSet.from_config(
+        OmegaConf.create({"name": "t", "groups": ["test_area", "test_centre[1:2]", "test_centre"], "params": params})
+    )
 
 
 def test_set_layout_and_columns():
@@ -71,12 +71,15 @@ def test_set_layout_and_columns():
     np.testing.assert_allclose(X[:, 2], geometry.face_centers(STRIP_V, STRIP_F)[:, 0], rtol=1e-6)
 
 
-@pytest.mark.parametrize("groups, params, problem", [
-    (["nope"], {}, "unknown feature group 'nope'"),
-    (["test_centre[0:3]"], {}, "columns 0:3 outside 0:2"),
-    (["test_centre[x]"], {}, "bad feature set entry"),
-    (["test_centre"], {"test_centre": {"radius": 2}}, "has no parameters ['radius']; it has ['scale']"),
-])
+@pytest.mark.parametrize(
+    "groups, params, problem",
+    [
+        (["nope"], {}, "unknown feature group 'nope'"),
+        (["test_centre[0:3]"], {}, "columns 0:3 outside 0:2"),
+        (["test_centre[x]"], {}, "bad feature set entry"),
+        (["test_centre"], {"test_centre": {"radius": 2}}, "has no parameters ['radius']; it has ['scale']"),
+    ],
+)
 def test_set_errors(groups, params, problem):
     with pytest.raises(ValueError, match=__import__("re").escape(problem)):
         FeatureSet.from_config(OmegaConf.create({"name": "t", "groups": groups, "params": params}))

@@ -2,11 +2,11 @@
 
 import heapq
 
+import conftest
 import numpy as np
 import pytest
 import trimesh
 
-import conftest
 from meshseg.features import geometry
 from meshseg.features.curvature import (
     CURVATURE_COLUMNS,
@@ -205,7 +205,13 @@ def test_covariance_eigenvalues_formula():
     rng = np.random.default_rng(3)
     c, a = rng.standard_normal((50, 3)), rng.random(50)
     total = 7.0
-    G = np.hstack([a[:, None], a[:, None] * c, a[:, None] * np.stack([c[:, i] * c[:, j] for i, j in [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]], 1)])
+    G = np.hstack(
+        [
+            a[:, None],
+            a[:, None] * c,
+            a[:, None] * np.stack([c[:, i] * c[:, j] for i, j in [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]], 1),
+        ]
+    )
     m = (a @ c) / total  # the original's mean: divided by the whole mesh's area
     C = ((c - m) * a[:, None]).T @ (c - m) / total
     expected = np.sqrt(np.linalg.eigvalsh(C))
@@ -245,7 +251,9 @@ def test_geodesic_balls_match_the_original_traversal(min_faces, check_normals):
     nbr, length = dual_edges(V, F)
     radii = (0.02, 0.1, 0.25)
     got = {}
-    for rows, J, masks in geodesic_balls(c, nbr, length, radii, max_neighbors=400, min_faces=min_faces, normals=n if check_normals else None):
+    for rows, J, masks in geodesic_balls(
+        c, nbr, length, radii, max_neighbors=400, min_faces=min_faces, normals=n if check_normals else None
+    ):
         for i, f in enumerate(rows):
             got[f] = [set(J[i][m[i]]) for m in masks]
     assert sorted(got) == list(range(len(F)))

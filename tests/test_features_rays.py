@@ -7,10 +7,10 @@ robustness on a messy mesh, and agreement with Kalogerakis et al.'s own output o
 import numpy as np
 import pytest
 import trimesh
+from conftest import SHARED, require
 from scipy.spatial.transform import Rotation
 from scipy.stats import pearsonr
 
-from conftest import SHARED, require
 from meshseg.features import geometry, medial, shape_diameter, spin_images
 from meshseg.features.registry import GROUPS
 
@@ -66,8 +66,10 @@ def chord(o, d, r):
 
 def test_ray_statistics_and_normalisation_by_hand():
     D = np.array([[1.0, 4.0, 9.0, 16.0]])
-    np.testing.assert_allclose(shape_diameter.ray_statistics(D)[0],
-                               [7.5, 88.5, (1 + 256 + 6561 + 65536) / 4, 2.5, np.mean(np.sqrt([1, 2, 3, 4])), 6.5])
+    np.testing.assert_allclose(
+        shape_diameter.ray_statistics(D)[0],
+        [7.5, 88.5, (1 + 256 + 6561 + 65536) / 4, 2.5, np.mean(np.sqrt([1, 2, 3, 4])), 6.5],
+    )
     X = np.arange(100.0)[:, None]
     Y = shape_diameter.normalise_columns(X, 0.95)  # clamp at the value at sorted position 95
     np.testing.assert_allclose(Y[:96, 0], np.arange(96) / 95)
@@ -100,7 +102,7 @@ def test_sdf_rays_on_sphere_are_chords():
     expected = np.stack([chord(setup.origins, d, r) for d in dirs], axis=1)
     np.testing.assert_allclose(D, expected, rtol=0.01)
     # a ray at θ from the axis is ≈ 2r cos θ
-    np.testing.assert_allclose(D[:, 1 + 16:], 2 * r * np.cos(np.radians(45)), rtol=0.02)
+    np.testing.assert_allclose(D[:, 1 + 16 :], 2 * r * np.cos(np.radians(45)), rtol=0.02)
     raw = shape_diameter.shape_diameters(V, F)
     np.testing.assert_allclose(raw, D)
 
@@ -199,8 +201,10 @@ def rigid(V):
     return V @ Rotation.random(random_state=7).as_matrix().T * 3.3 + np.array([10.0, -4.0, 2.5])
 
 
-@pytest.mark.parametrize("name,params,atol", [("sdf", {}, 1e-4), ("dms", {}, 1e-4),
-                                              ("spin_images", {}, 2e-4), ("spin_images", {"n_samples": 300}, 2e-4)])
+@pytest.mark.parametrize(
+    "name,params,atol",
+    [("sdf", {}, 1e-4), ("dms", {}, 1e-4), ("spin_images", {}, 2e-4), ("spin_images", {"n_samples": 300}, 2e-4)],
+)
 def test_invariant_to_rigid_motion_and_face_order(name, params, atol):
     V, F = blob()
     group = GROUPS[name]
@@ -216,7 +220,7 @@ def test_finite_on_a_messy_mesh():
     tet = trimesh.creation.box(extents=[0.3, 0.3, 0.3])
     F = np.concatenate([F, np.array(tet.faces) + len(V)])
     V = np.concatenate([V, np.array(tet.vertices) + [3, 0, 0]])
-    a, b = V[0], V[1]
+    a = V[0]
     V = np.concatenate([V, [a + [0, 0, 2], a + [0, 0, 3], a + [0, 0, 2.5]]])  # collinear
     F = np.concatenate([F, [[len(V) - 3, len(V) - 2, len(V) - 1]]])
     e = F[0, :2]
@@ -265,8 +269,11 @@ def test_matches_kalogerakis_reference_on_airplane(psb):
     src = copy_sources(F)
     # (median, 10th percentile) of per-column Pearson r: as computed, and with the original's
     # copying shortcut replayed on our values (same definitions => ~1)
-    floors = {"sdf": ((0.96, 0.94), (0.9995, 0.99)), "dms": ((0.975, 0.84), (0.997, 0.94)),
-              "spin_images": ((0.86, 0.70), (0.998, 0.996))}
+    floors = {
+        "sdf": ((0.96, 0.94), (0.9995, 0.99)),
+        "dms": ((0.975, 0.84), (0.997, 0.94)),
+        "spin_images": ((0.86, 0.70), (0.998, 0.996)),
+    }
     for name, _, cols in GROUP_SPECS:
         X = GROUPS[name](V, F)
         if name == "sdf":
@@ -274,8 +281,11 @@ def test_matches_kalogerakis_reference_on_airplane(psb):
             raw = shape_diameter.sdf_statistics(shape_diameter.sdf_rays(setup, 8), 8)
         elif name == "dms":
             raw = shape_diameter.ray_statistics(medial.medial_rays(setup, 8, 8))
-        copied = X[src] if name == "spin_images" else shape_diameter.log_transforms(
-            shape_diameter.normalise_columns(raw[src], 0.95))
+        copied = (
+            X[src]
+            if name == "spin_images"
+            else shape_diameter.log_transforms(shape_diameter.normalise_columns(raw[src], 0.95))
+        )
         (med, p10), (cmed, cp10) = floors[name]
         r = column_pearson(X[rows], ref["X"][:, cols])
         assert np.median(r) >= med and np.percentile(r, 10) >= p10, (name, np.median(r), np.percentile(r, 10))

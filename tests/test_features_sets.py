@@ -6,9 +6,9 @@ import sys
 
 import numpy as np
 import pytest
+from conftest import REPO
 from hydra import compose, initialize_config_dir
 
-from conftest import REPO
 from meshseg import CONF_DIR
 from meshseg.data.datasets import Synthetic
 from meshseg.features.cache import FeatureCache
@@ -44,10 +44,20 @@ def test_set_widths(name, dim):
 def test_f800_layout_follows_the_paper():
     fs = feature_set("f800")
     assert fs.layout == {
-        "curvature": (0, 64), "pca": (64, 112), "shape_context": (112, 382), "agd": (382, 397),
-        "sdf": (397, 469), "dms": (469, 493), "spin_images": (493, 593), "cf0": (593, 594),
-        "cf_smooth": (594, 599), "gc": (599, 600), "hks": (600, 700), "sihks": (700, 800)}
-    ref = (REPO.parent / "shared/data/reference/kalogerakis2010/columns.txt")
+        "curvature": (0, 64),
+        "pca": (64, 112),
+        "shape_context": (112, 382),
+        "agd": (382, 397),
+        "sdf": (397, 469),
+        "dms": (469, 493),
+        "spin_images": (493, 593),
+        "cf0": (593, 594),
+        "cf_smooth": (594, 599),
+        "gc": (599, 600),
+        "hks": (600, 700),
+        "sihks": (700, 800),
+    }
+    ref = REPO.parent / "shared/data/reference/kalogerakis2010/columns.txt"
     if ref.exists():
         names = [line.split("\t", 1)[-1].strip() for line in ref.read_text().splitlines() if line.strip()]
         assert fs.columns[:593] == names
@@ -99,8 +109,9 @@ def test_f800_finite_on_real_meshes(psb, mesh_path):
 
 
 def run(*args):
-    return subprocess.run([sys.executable, "-m", "meshseg.features", *args], cwd=REPO, capture_output=True,
-                          text=True, timeout=600)
+    return subprocess.run(
+        [sys.executable, "-m", "meshseg.features", *args], cwd=REPO, capture_output=True, text=True, timeout=600
+    )
 
 
 def test_cli_one_mesh_writes_f800(psb, tmp_path):
@@ -110,12 +121,19 @@ def test_cli_one_mesh_writes_f800(psb, tmp_path):
     X = np.load(out)
     assert X.shape == (10084, 800) and X.dtype == np.float32 and np.isfinite(X).all()
     mesh = psb.load("Airplane", "74")
-    np.testing.assert_allclose(X[:, 599], feature_set("f800").compute(mesh.vertices, mesh.faces, "x")[:, 599], rtol=1e-5)
+    np.testing.assert_allclose(
+        X[:, 599], feature_set("f800").compute(mesh.vertices, mesh.faces, "x")[:, 599], rtol=1e-5
+    )
 
 
 def test_cli_dataset_run_caches(tmp_path):
-    args = ["dataset=synthetic", "dataset.meshes_per_category=1", "features=cf0_5", "workers=2",
-            f"paths.cache_dir={tmp_path}"]
+    args = [
+        "dataset=synthetic",
+        "dataset.meshes_per_category=1",
+        "features=cf0_5",
+        "workers=2",
+        f"paths.cache_dir={tmp_path}",
+    ]
     r = run(*args)
     assert r.returncode == 0, r.stderr[-2000:]
     last = r.stdout.strip().splitlines()[-1]

@@ -138,7 +138,12 @@ def test_cf_smooth_is_zero_on_genus_one_unless_sphere_total():
 def test_cf_smooth_parameters_change_values():
     V, F = bumpy_sphere()
     base = group("cf_smooth", V, F)
-    for params in ({"taubin_pairs": 3}, {"laplacian_mesh": "original"}, {"taubin_mu": -0.6}, {"taubin_weights": "uniform"}):
+    for params in (
+        {"taubin_pairs": 3},
+        {"laplacian_mesh": "original"},
+        {"taubin_mu": -0.6},
+        {"taubin_weights": "uniform"},
+    ):
         assert not np.allclose(group("cf_smooth", V, F, **params), base, atol=1e-6)
     with pytest.raises(ValueError, match="laplacian_mesh"):
         group("cf_smooth", V, F, laplacian_mesh="other")
@@ -163,7 +168,9 @@ def test_hks_sihks_constant_on_sphere():
     h, s = group("hks", V, F), group("sihks", V, F)
     assert (h.std(axis=0) / h.mean(axis=0)).max() < 0.01
     assert s.std(axis=0).max() < 0.01 * s[:, 0].mean()
-    assert np.all(np.diff(h.mean(axis=0)) <= 0) and h[:, 0].mean() > 2 * h[:, -1].mean()  # heat leaves every point as t grows
+    assert (
+        np.all(np.diff(h.mean(axis=0)) <= 0) and h[:, 0].mean() > 2 * h[:, -1].mean()
+    )  # heat leaves every point as t grows
 
 
 def test_scale_by_3():

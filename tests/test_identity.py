@@ -41,15 +41,23 @@ HASHES = {
 def test_golden_config_hashes_stay_put(name):
     overrides, category = GOLDEN[name]
     assert identity(overrides, category) == HASHES[name], (
-        f"the run identity of '{name}' changed: see this file's docstring")
+        f"the run identity of '{name}' changed: see this file's docstring"
+    )
 
 
 def test_what_is_not_a_knob_keeps_the_hash(monkeypatch, tmp_path):
     overrides, category = GOLDEN["cnn1d 3B cpu psb"]
     base = identity(overrides, category)
     monkeypatch.setenv("MESHSEG_CACHE_DIR", str(tmp_path))
-    moved = [*overrides, "dataset.root=/elsewhere/psb", "trainer.threads=1", "workers=1",
-             f"tracking.uri=sqlite:///{tmp_path}/x.db", "tracking.renders=0", "trainer.predict_batch_size=64"]
+    moved = [
+        *overrides,
+        "dataset.root=/elsewhere/psb",
+        "trainer.threads=1",
+        "workers=1",
+        f"tracking.uri=sqlite:///{tmp_path}/x.db",
+        "tracking.renders=0",
+        "trainer.predict_batch_size=64",
+    ]
     assert identity(moved, category) == base
     assert identity([*overrides, "seed=1"], category) != base
     assert identity([*overrides, "refine=none"], category) != base

@@ -1,6 +1,7 @@
 """File formats: exact parsing, tolerated variants, and one clear error per kind of bad input."""
 
 import re
+
 import numpy as np
 import pytest
 
@@ -25,15 +26,18 @@ def test_read_off_plain(tmp_path):
     np.testing.assert_array_equal(f, TETRA_F)
 
 
-@pytest.mark.parametrize("text", [
-    "# made by hand\nOFF\n# counts next\n4 4 0\n\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 2 1\n3 0 1 3\n3 0 3 2\n3 1 2 3\n",
-    "OFF 4 4 0\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 2 1\n3 0 1 3\n3 0 3 2\n3 1 2 3\n",
-    TETRA_OFF.replace("\n", "\r\n"),
-    # COFF: colours after each vertex and face; a comment inside the body
-    "COFF\n4 4 0\n0 0 0 255 0 0 255\n1 0 0 255 0 0 255\n0 1 0 9 9 9 9\n# mid\n0 0 1 1 1 1 1\n"
-    "3 0 2 1 0.5 0.5 0.5\n3 0 1 3 1 1 1\n3 0 3 2 0 0 0\n3 1 2 3 0 0 0\n",
-    "4 4 0\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 2 1\n3 0 1 3\n3 0 3 2\n3 1 2 3\n",  # header keyword omitted
-])
+@pytest.mark.parametrize(
+    "text",
+    [
+        "# made by hand\nOFF\n# counts next\n4 4 0\n\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 2 1\n3 0 1 3\n3 0 3 2\n3 1 2 3\n",
+        "OFF 4 4 0\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 2 1\n3 0 1 3\n3 0 3 2\n3 1 2 3\n",
+        TETRA_OFF.replace("\n", "\r\n"),
+        # COFF: colours after each vertex and face; a comment inside the body
+        "COFF\n4 4 0\n0 0 0 255 0 0 255\n1 0 0 255 0 0 255\n0 1 0 9 9 9 9\n# mid\n0 0 1 1 1 1 1\n"
+        "3 0 2 1 0.5 0.5 0.5\n3 0 1 3 1 1 1\n3 0 3 2 0 0 0\n3 1 2 3 0 0 0\n",
+        "4 4 0\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 2 1\n3 0 1 3\n3 0 3 2\n3 1 2 3\n",  # header keyword omitted
+    ],
+)
 def test_read_off_variants(tmp_path, text):
     v, f = read_off(write(tmp_path, "t.off", text))
     np.testing.assert_array_equal(v, TETRA_V)
@@ -52,8 +56,8 @@ def test_psb_file_with_meshlab_junk_equals_cleaned_copy(tmp_path, psb):
     raw = (psb.root / "Armadillo/281.off").read_bytes()
     lines = raw.split(b"\n")
     nv, nf = map(int, lines[1].split()[:2])
-    assert len([x for x in lines[2 + nv + nf:] if x.strip()]) > 0, "fixture must have trailing junk"
-    assert b"<filter name=" in b"\n".join(lines[2 + nv + nf:])
+    assert len([x for x in lines[2 + nv + nf :] if x.strip()]) > 0, "fixture must have trailing junk"
+    assert b"<filter name=" in b"\n".join(lines[2 + nv + nf :])
     clean = b"\n".join(lines[: 2 + nv + nf]) + b"\n"
     v1, f1 = read_off(write(tmp_path, "junk.off", raw))
     v2, f2 = read_off(write(tmp_path, "clean.off", clean))
@@ -73,17 +77,23 @@ def test_write_off_round_trips_exactly(tmp_path):
     assert not list(tmp_path.glob(".*tmp")), "atomic write leaves no temporary file"
 
 
-@pytest.mark.parametrize("text, problem", [
-    ("", "empty file"),
-    ("OFF\n", "truncated"),
-    ("OFF\n0 0 0\n", "empty mesh"),
-    ("OFF\n4 4 0\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 2 1\n3 0 1 3\n", "truncated: header declares 4 vertices and 4 faces, file holds 6 records"),
-    (TETRA_OFF.replace("3 1 2 3", "4 1 2 3 0"), "face 3 has 4 vertices; only triangle"),
-    (TETRA_OFF.replace("0 1 0\n", "0 one 0\n"), "vertex record 2 is not 3 numbers"),
-    (TETRA_OFF.replace("3 0 1 3", "3 0 1.5 3"), "face record 1 is not integers"),
-    ("ply\nformat ascii 1.0\n", "not an OFF file"),
-    ("4OFF\n4 4 0\n", "unsupported OFF variant '4OFF'"),
-])
+@pytest.mark.parametrize(
+    "text, problem",
+    [
+        ("", "empty file"),
+        ("OFF\n", "truncated"),
+        ("OFF\n0 0 0\n", "empty mesh"),
+        (
+            "OFF\n4 4 0\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 2 1\n3 0 1 3\n",
+            "truncated: header declares 4 vertices and 4 faces, file holds 6 records",
+        ),
+        (TETRA_OFF.replace("3 1 2 3", "4 1 2 3 0"), "face 3 has 4 vertices; only triangle"),
+        (TETRA_OFF.replace("0 1 0\n", "0 one 0\n"), "vertex record 2 is not 3 numbers"),
+        (TETRA_OFF.replace("3 0 1 3", "3 0 1.5 3"), "face record 1 is not integers"),
+        ("ply\nformat ascii 1.0\n", "not an OFF file"),
+        ("4OFF\n4 4 0\n", "unsupported OFF variant '4OFF'"),
+    ],
+)
 def test_bad_off_raises_one_clear_error(tmp_path, text, problem):
     p = write(tmp_path, "bad.off", text)
     with pytest.raises(MeshDataError, match=re.escape(problem)) as e:
@@ -92,8 +102,10 @@ def test_bad_off_raises_one_clear_error(tmp_path, text, problem):
 
 
 def test_read_obj_groups_become_labels(tmp_path):
-    text = ("# cube corner\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nvt 0 0\nvn 0 0 1\n"
-            "f 1 3 2\ng wing\nf 1/1/1 2/1/1 4/1/1\nf -4//1 -1//1 -2//1\ng body\nf 2 3 4\n")
+    text = (
+        "# cube corner\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nvt 0 0\nvn 0 0 1\n"
+        "f 1 3 2\ng wing\nf 1/1/1 2/1/1 4/1/1\nf -4//1 -1//1 -2//1\ng body\nf 2 3 4\n"
+    )
     v, f, labels, names = read_obj(write(tmp_path, "m.obj", text))
     np.testing.assert_array_equal(v, TETRA_V)
     np.testing.assert_array_equal(f, TETRA_F)
@@ -114,14 +126,17 @@ def test_read_psb_labels(tmp_path):
     np.testing.assert_array_equal(labels, [0, 1, 0, 1])
 
 
-@pytest.mark.parametrize("text, problem", [
-    ("", "empty file"),
-    ("wing\n1 2 3\nbody\n", "truncated"),
-    ("wing\n1 2\nbody\n2 3 4\n", "face 2 is labelled twice ('body' and label 'wing')"),
-    ("wing\n1 2\nbody\n3\n", "1 of 4 faces have no label (first: face 4)"),
-    ("wing\n1 2 5\nbody\n3 4\n", "label 'wing' lists face 5, outside 1..4"),
-    ("wing\n1 2 x\nbody\n3 4\n", "face indices of label 'wing' are not integers"),
-])
+@pytest.mark.parametrize(
+    "text, problem",
+    [
+        ("", "empty file"),
+        ("wing\n1 2 3\nbody\n", "truncated"),
+        ("wing\n1 2\nbody\n2 3 4\n", "face 2 is labelled twice ('body' and label 'wing')"),
+        ("wing\n1 2\nbody\n3\n", "1 of 4 faces have no label (first: face 4)"),
+        ("wing\n1 2 5\nbody\n3 4\n", "label 'wing' lists face 5, outside 1..4"),
+        ("wing\n1 2 x\nbody\n3 4\n", "face indices of label 'wing' are not integers"),
+    ],
+)
 def test_bad_psb_labels(tmp_path, text, problem):
     p = write(tmp_path, "1_labels.txt", text)
     with pytest.raises(MeshDataError, match=re.escape(problem)) as e:
@@ -133,12 +148,15 @@ def test_read_seg(tmp_path):
     np.testing.assert_array_equal(read_seg(write(tmp_path, "a.seg", "2\n2\n3\n1\n"), 4), [2, 2, 3, 1])
 
 
-@pytest.mark.parametrize("text, problem", [
-    ("", "empty file"),
-    ("1\n2\n3\n", "3 labels for a mesh of 4 faces"),
-    ("1\n2\nx\n3\n", "label 3 is not an integer"),
-    ("1\n-2\n1\n3\n", "negative label -2 on face 2"),
-])
+@pytest.mark.parametrize(
+    "text, problem",
+    [
+        ("", "empty file"),
+        ("1\n2\n3\n", "3 labels for a mesh of 4 faces"),
+        ("1\n2\nx\n3\n", "label 3 is not an integer"),
+        ("1\n-2\n1\n3\n", "negative label -2 on face 2"),
+    ],
+)
 def test_bad_seg(tmp_path, text, problem):
     p = write(tmp_path, "a.seg", text)
     with pytest.raises(MeshDataError, match=re.escape(problem)):

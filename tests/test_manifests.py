@@ -16,21 +16,51 @@ from meshseg.data.datasets import normalise_name
 EXPERIMENTS = REPO / "experiments"
 PAPER = Path(__file__).resolve().parents[1].parent / "shared/paper/george2018_multibranch_1dcnn.tex"
 MANIFESTS = sorted(EXPERIMENTS.glob("*.yaml"))
-EXPECTED = {"table1_psb_loo", "table2_psb_5fold", "table3_coseg_5fold", "table4_fixed_splits",
-            "figure_cf_rf_loo", "omitted_psb_loo", "ablation_graphcut"}
+EXPECTED = {
+    "table1_psb_loo",
+    "table2_psb_5fold",
+    "table3_coseg_5fold",
+    "table4_fixed_splits",
+    "figure_cf_rf_loo",
+    "omitted_psb_loo",
+    "ablation_graphcut",
+}
 # manifest -> \label of the paper's table its numbers are transcribed from
-PAPER_TABLES = {"table1_psb_loo": "table:results", "table2_psb_5fold": "table:results-psb",
-                "table3_coseg_5fold": "table:results-coseg", "table4_fixed_splits": "table:results-1fold"}
-LPSB = ["Airplane", "Ant", "Armadillo", "Bearing", "Bird", "Bust", "Chair", "Cup", "Fish", "FourLeg", "Glasses",
-        "Hand", "Human", "Mech", "Octopus", "Plier", "Table", "Teddy", "Vase"]
+PAPER_TABLES = {
+    "table1_psb_loo": "table:results",
+    "table2_psb_5fold": "table:results-psb",
+    "table3_coseg_5fold": "table:results-coseg",
+    "table4_fixed_splits": "table:results-1fold",
+}
+LPSB = [
+    "Airplane",
+    "Ant",
+    "Armadillo",
+    "Bearing",
+    "Bird",
+    "Bust",
+    "Chair",
+    "Cup",
+    "Fish",
+    "FourLeg",
+    "Glasses",
+    "Hand",
+    "Human",
+    "Mech",
+    "Octopus",
+    "Plier",
+    "Table",
+    "Teddy",
+    "Vase",
+]
 TABLE1_SETS = [c for c in LPSB if c not in ("Bearing", "Bust", "Mech")]
 
 # Published averages that are not the mean of their rows (rounded to 2 decimals, tolerance 0.011):
 # (manifest, group, column key) -> (printed average, mean of the printed rows to 2 decimals). The
 # printed numbers are kept in the manifests; their `note:` says so.
 AVERAGE_EXCEPTIONS = {
-    ("table1_psb_loo", "PSB", "ae_nn"): (90.61, 90.55),   # 16 rows sum to 1448.75 -> 90.5469
-    ("table1_psb_loo", "PSB", "ToG15"): (92.79, 92.81),   # 16 rows sum to 1484.94 -> 92.8087
+    ("table1_psb_loo", "PSB", "ae_nn"): (90.61, 90.55),  # 16 rows sum to 1448.75 -> 90.5469
+    ("table1_psb_loo", "PSB", "ToG15"): (92.79, 92.81),  # 16 rows sum to 1484.94 -> 92.8087
 }
 # Table 4 "Testing Meshes" cells that disagree with the ShapePFCN split file's test list:
 # set -> (printed, split file). cosegGuitars: the file lists 12 training + 32 test guitars.
@@ -39,9 +69,10 @@ TEST_MESHES_EXCEPTIONS = {"cosegGuitars": (35, 32)}
 
 # --- the paper's LaTeX ---------------------------------------------------------------------------------
 
+
 def paper_tex() -> str:
     text = require(PAPER).read_text()
-    return re.sub(r"(?<!\\)%.*", "", text)   # drop comments
+    return re.sub(r"(?<!\\)%.*", "", text)  # drop comments
 
 
 def _strip_macros(cell: str) -> str:
@@ -50,7 +81,7 @@ def _strip_macros(cell: str) -> str:
     cell = re.sub(r"\\cite\{[^{}]*\}", "", cell)
     cell = re.sub(r"\\multicolumn\{[^{}]*\}\{[^{}]*\}", "", cell)
     prev = None
-    while prev != cell:   # unwrap nested \textit{\tbf{...}} from the inside out
+    while prev != cell:  # unwrap nested \textit{\tbf{...}} from the inside out
         prev = cell
         cell = re.sub(r"\\(tbf|textbf|textit|tul|underline|mr)\{([^{}]*)\}", r"\2", cell)
     return " ".join(cell.split())
@@ -93,6 +124,7 @@ def parse_tabulars(tex: str, label: str) -> list[list[tuple[str, list]]]:
 
 # --- manifests -----------------------------------------------------------------------------------------
 
+
 def load(stem: str) -> dict:
     return yaml.safe_load((EXPERIMENTS / f"{stem}.yaml").read_text())
 
@@ -104,7 +136,7 @@ def test_every_manifest_is_there():
 @pytest.mark.parametrize("path", MANIFESTS, ids=lambda p: p.stem)
 def test_schema(path):
     m = yaml.safe_load(path.read_text())
-    assert OmegaConf.to_container(OmegaConf.load(path)) == m   # omegaconf reads it the same
+    assert OmegaConf.to_container(OmegaConf.load(path)) == m  # omegaconf reads it the same
     assert path.read_text().startswith("#"), "header comment"
     assert m["name"] == path.stem
     assert isinstance(m["title"], str) and m["title"] and isinstance(m["source"], str) and m["source"]
@@ -151,9 +183,9 @@ def test_published_numbers_match_the_latex(stem):
     assert f"\\label{{{label}}}" in m["source"]
     tables = parse_tabulars(paper_tex(), label)
     groups = m["groups"]
-    if len(tables) == len(groups):      # one tabular per group (Table 3: SmallSet, LargeSet)
+    if len(tables) == len(groups):  # one tabular per group (Table 3: SmallSet, LargeSet)
         chunks = [list(t) for t in tables]
-    else:                                # one tabular holding every group in turn (Table 4)
+    else:  # one tabular holding every group in turn (Table 4)
         assert len(tables) == 1, (stem, len(tables))
         chunks = [list(tables[0])] * len(groups)
     extra = 1 if any("test_meshes" in s for g in groups for s in g["sets"]) else 0  # Table 4's "Testing Meshes"
@@ -163,7 +195,7 @@ def test_published_numbers_match_the_latex(stem):
         names = [r[0] for r in rows]
         assert g["average"] in names, (g["name"], g["average"])
         k = names.index(g["average"])
-        paper_sets, paper_avg, rows = rows[:k], rows[k], rows[k + 1:]
+        paper_sets, paper_avg, rows = rows[:k], rows[k], rows[k + 1 :]
         assert [s["name"] for s in g["sets"]] == [r[0] for r in paper_sets], g["name"]
         for s, (name, values) in zip(g["sets"], paper_sets):
             assert len(values) == len(m["columns"]) + extra, name
@@ -172,7 +204,7 @@ def test_published_numbers_match_the_latex(stem):
             assert s["published"] == values[extra:], name
         assert len(paper_avg[1]) == len(m["columns"]) + extra
         if extra:
-            assert paper_avg[1][0] is None   # '-'
+            assert paper_avg[1][0] is None  # '-'
         assert g["published_average"] == paper_avg[1][extra:], g["name"]
         if len(tables) == len(groups):
             assert rows == [], f"rows after {g['average']!r}: {rows}"
@@ -200,12 +232,15 @@ def test_parser_sees_the_paper_tables():
 
 def test_omitted_sets_match_the_sentence():
     m = load("omitted_psb_loo")
-    s = re.search(r"Accuracies of ([\d.]+)\\%, ([\d.]+)\\% and ([\d.]+)\\% \\cite\{guo2015\}, and ([\d.]+)\\%, "
-                  r"([\d.]+)\\% and ([\d.]+)\\% \(our 1D \\ac\{CNN\}\) were achieved for the (\w+), (\w+) and (\w+) "
-                  r"sets respectively", paper_tex())
+    s = re.search(
+        r"Accuracies of ([\d.]+)\\%, ([\d.]+)\\% and ([\d.]+)\\% \\cite\{guo2015\}, and ([\d.]+)\\%, "
+        r"([\d.]+)\\% and ([\d.]+)\\% \(our 1D \\ac\{CNN\}\) were achieved for the (\w+), (\w+) and (\w+) "
+        r"sets respectively",
+        paper_tex(),
+    )
     assert s, "sentence not found"
     values = [float(v) for v in s.groups()[:6]]
-    by_key = {"ToG15": values[:3], "cnn1d": values[3:]}   # ToG15 [guo2015] first, then ours
+    by_key = {"ToG15": values[:3], "cnn1d": values[3:]}  # ToG15 [guo2015] first, then ours
     names = list(s.groups()[6:])
     assert [c["overrides"] for c in m["columns"]] == [["model=cnn2d"], ["model=cnn1d", "branches=3"]]
     (g,) = m["groups"]
@@ -219,16 +254,17 @@ def test_cf_figure_has_no_published_numbers():
     tex = paper_tex()
     fig = _environment_before(tex, "fig:cfResults")
     graphics = re.findall(r"\\includegraphics(?:\[[^\]]*\])?\{([^{}]*)\}", fig)
-    assert graphics and all(g.strip() == "" for g in graphics), graphics   # the image file is absent
+    assert graphics and all(g.strip() == "" for g in graphics), graphics  # the image file is absent
     m = load("figure_cf_rf_loo")
-    caption = fig[fig.index("\\caption"):]
-    assert all(c["label"] in caption for c in m["columns"])   # CF0, CF1, CF0+1, CF1:5, CF0:5
+    caption = fig[fig.index("\\caption") :]
+    assert all(c["label"] in caption for c in m["columns"])  # CF0, CF1, CF0+1, CF1:5, CF0:5
     assert [c["key"] for c in m["columns"]] == ["cf0", "cf1", "cf0_1", "cf1_5", "cf0_5"]
-    assert [c["overrides"] for c in m["columns"]] == [["model=rf", f"features={k}"] for k in
-                                                      ["cf0", "cf1", "cf0_1", "cf1_5", "cf0_5"]]
+    assert [c["overrides"] for c in m["columns"]] == [
+        ["model=rf", f"features={k}"] for k in ["cf0", "cf1", "cf0_1", "cf1_5", "cf0_5"]
+    ]
     assert m["overrides"] == ["dataset=psb", "split=loo"]
     (g,) = m["groups"]
-    assert [s["category"] for s in g["sets"]] == LPSB   # "all sets"
+    assert [s["category"] for s in g["sets"]] == LPSB  # "all sets"
     assert all(v is None for s in g["sets"] for v in s["published"])
     assert all(v is None for v in g["published_average"])
     assert "absent" in m["note"]
@@ -260,7 +296,15 @@ def test_categories():
     t3 = load("table3_coseg_5fold")
     assert [g["name"] for g in t3["groups"]] == ["SmallSet", "LargeSet"]
     assert [s["category"] for s in t3["groups"][0]["sets"]] == [
-        "Candelabra", "Chairs", "Fourleg", "Goblets", "Guitars", "Irons", "Lamps", "Vases"]
+        "Candelabra",
+        "Chairs",
+        "Fourleg",
+        "Goblets",
+        "Guitars",
+        "Irons",
+        "Lamps",
+        "Vases",
+    ]
     assert [s["category"] for s in t3["groups"][1]["sets"]] == ["VasesLarge", "ChairsLarge", "TeleAliens"]
     t4 = load("table4_fixed_splits")
     for g in t4["groups"]:
@@ -270,8 +314,12 @@ def test_categories():
 
 def _split_file_blocks() -> dict[str, tuple[int, int]]:
     text = require(SPLIT_FILE).read_text()
-    return {normalise_name(c): (int(tr), int(te)) for c, tr, te in re.findall(
-        r"^Category (\S+)\s*\nTraining split: (\d+) shapes.*?^Test split: (\d+) shapes", text, re.S | re.M)}
+    return {
+        normalise_name(c): (int(tr), int(te))
+        for c, tr, te in re.findall(
+            r"^Category (\S+)\s*\nTraining split: (\d+) shapes.*?^Test split: (\d+) shapes", text, re.S | re.M
+        )
+    }
 
 
 def test_fixed_split_sets_are_in_the_split_file():
@@ -287,12 +335,13 @@ def test_fixed_split_sets_are_in_the_split_file():
                 assert str(printed) in t4["note"] and str(in_file) in t4["note"]
             else:
                 assert printed == in_file, s["name"]
-    for s in load("table3_coseg_5fold")["groups"][1]["sets"]:   # LargeSet: the split file's block names
+    for s in load("table3_coseg_5fold")["groups"][1]["sets"]:  # LargeSet: the split file's block names
         assert normalise_name("coseg" + s["category"]) in blocks
     assert {normalise_name("psb" + c) for c in LPSB} <= set(blocks)
 
 
 # --- the paper's averages ------------------------------------------------------------------------------
+
 
 def _mean(values):
     return sum(values) / len(values)
@@ -330,10 +379,11 @@ def test_table4_total_is_the_mean_over_all_24_sets():
         over_sets = round(_mean([s["published"][j] for s in sets]), 2)
         over_groups = round(_mean([g["published_average"][j] for g in m["groups"]]), 2)
         assert abs(over_sets - total) <= 0.011, (c["key"], over_sets, total)
-        assert abs(over_groups - total) > 0.1, (c["key"], over_groups, total)   # not the mean of the 2 averages
+        assert abs(over_groups - total) > 0.1, (c["key"], over_groups, total)  # not the mean of the 2 averages
 
 
 # --- composition with the Hydra config -----------------------------------------------------------------
+
 
 def _compositions():
     out = []

@@ -50,9 +50,23 @@ def mlflow_ui(store: Path):
     """`mlflow ui` on a free port of 127.0.0.1, in its own process group; stopped (group and all) on exit."""
     port = free_port()
     mlflow = Path(sys.executable).with_name("mlflow")
-    proc = subprocess.Popen([str(mlflow), "ui", "--backend-store-uri", f"sqlite:///{store}/mlflow.db",
-                             "--host", "127.0.0.1", "--port", str(port), "--workers", "1"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+    proc = subprocess.Popen(
+        [
+            str(mlflow),
+            "ui",
+            "--backend-store-uri",
+            f"sqlite:///{store}/mlflow.db",
+            "--host",
+            "127.0.0.1",
+            "--port",
+            str(port),
+            "--workers",
+            "1",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        start_new_session=True,
+    )
     base = f"http://127.0.0.1:{port}"
     try:
         deadline = time.time() + 120
@@ -68,10 +82,10 @@ def mlflow_ui(store: Path):
             time.sleep(0.5)
         yield base, proc, port
     finally:
-        os.killpg(proc.pid, signal.SIGTERM)   # the server and its uvicorn workers
+        os.killpg(proc.pid, signal.SIGTERM)  # the server and its uvicorn workers
         deadline = time.time() + 30
         while (proc.poll() is None or group_alive(proc.pid)) and time.time() < deadline:
-            time.sleep(0.2)                    # the workers exit a moment after the parent
+            time.sleep(0.2)  # the workers exit a moment after the parent
         if group_alive(proc.pid):
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()

@@ -33,23 +33,36 @@ def outputs(nb) -> str:
 def test_compare_published_runs_on_the_smoke_store(smoke_store, tmp_path, cache_dir, monkeypatch):
     doc = yaml.safe_load((REPO / "experiments/synthetic.yaml").read_text())
     for s, pub in zip(doc["groups"][0]["sets"], ([95.0, 50.0, 90.0], [90.0, None, 95.0], [40.0, 30.0, 85.0])):
-        s["published"] = pub   # invented numbers, so that the scatter and the Δ bars have points
+        s["published"] = pub  # invented numbers, so that the scatter and the Δ bars have points
     manifest = tmp_path / "synthetic.yaml"
     manifest.write_text(yaml.safe_dump(doc))
-    nb = execute("compare_published.ipynb", {"MESHSEG_TRACKING_URI": f"sqlite:///{smoke_store}/mlflow.db",
-                                             "MESHSEG_MANIFEST": str(manifest), "MESHSEG_OVERRIDES": " ".join(SMOKE),
-                                             "MESHSEG_CACHE_DIR": str(cache_dir)}, monkeypatch)
+    nb = execute(
+        "compare_published.ipynb",
+        {
+            "MESHSEG_TRACKING_URI": f"sqlite:///{smoke_store}/mlflow.db",
+            "MESHSEG_MANIFEST": str(manifest),
+            "MESHSEG_OVERRIDES": " ".join(SMOKE),
+            "MESHSEG_CACHE_DIR": str(cache_dir),
+        },
+        monkeypatch,
+    )
     text = outputs(nb)
-    assert re.search(r"ok\s+12", text)                 # 9 sets + 3 averages, all complete
-    assert text.count("image/png") >= 2                # scatter and Δ bars
+    assert re.search(r"ok\s+12", text)  # 9 sets + 3 averages, all complete
+    assert text.count("image/png") >= 2  # scatter and Δ bars
     assert "Figure" in text and "1D CNN 3B" in text
 
 
 def test_inspect_run_runs_on_the_smoke_store(smoke_store, cache_dir, monkeypatch):
-    nb = execute("inspect_run.ipynb", {"MESHSEG_TRACKING_URI": f"sqlite:///{smoke_store}/mlflow.db",
-                                       "MESHSEG_RUN_ID": "",
-                                       "MESHSEG_CACHE_DIR": str(cache_dir)}, monkeypatch)
+    nb = execute(
+        "inspect_run.ipynb",
+        {
+            "MESHSEG_TRACKING_URI": f"sqlite:///{smoke_store}/mlflow.db",
+            "MESHSEG_RUN_ID": "",
+            "MESHSEG_CACHE_DIR": str(cache_dir),
+        },
+        monkeypatch,
+    )
     text = outputs(nb)
-    assert text.count("image/png") >= 3                # per-mesh bars, render, confusion matrix
+    assert text.count("image/png") >= 3  # per-mesh bars, render, confusion matrix
     assert "confusion.png" in text and "renders/mesh_" in text and "test_acc" in text
-    assert "data_hash" in text and "config_hash" in text   # every tag FoldRecord.TAGS names
+    assert "data_hash" in text and "config_hash" in text  # every tag FoldRecord.TAGS names

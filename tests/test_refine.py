@@ -84,8 +84,9 @@ def test_edge_theta_concave_cheap_convex_dear():
 
 def test_classic_and_agd_weight_formulas():
     theta = np.array([np.pi / 2, np.pi / 4, np.pi])
-    np.testing.assert_allclose(graphcut.classic_weights(theta, np.array([2.0, 1.0, 5.0])),
-                               [2 * np.log(2), np.log(4), 0.0])
+    np.testing.assert_allclose(
+        graphcut.classic_weights(theta, np.array([2.0, 1.0, 5.0])), [2 * np.log(2), np.log(4), 0.0]
+    )
     f = np.array([[0.0, 0.0], [0.3, 0.4], [3.0, 4.0], [3.0, 4.0]])  # jumps 0.5 and 5
     pairs = np.array([[0, 1], [1, 2], [2, 3]])
     w = graphcut.agd_weights(theta, f, pairs, omega=1.0)
@@ -127,8 +128,10 @@ def test_degenerate_faces_give_finite_weights():
 
 def brute_force(P: np.ndarray, pairs: np.ndarray, w: np.ndarray, lam: float) -> dict:
     """The energy of every labelling of a small problem."""
-    return {lab: graphcut.potts_energy(np.array(lab), P, pairs, w, lam, 1e-6)
-            for lab in itertools.product(range(P.shape[1]), repeat=len(P))}
+    return {
+        lab: graphcut.potts_energy(np.array(lab), P, pairs, w, lam, 1e-6)
+        for lab in itertools.product(range(P.shape[1]), repeat=len(P))
+    }
 
 
 def test_alpha_expansion_matches_brute_force_on_small_problems():
@@ -214,8 +217,11 @@ def test_ambiguous_panel_is_cut_at_the_valley_not_the_ridge(name):
     f = np.select([panel == 0, panel == 1, panel == 2], [c[:, 0], 1 - c[:, 2], 1 + c[:, 0]])[:, None]
     cfg = conf(name)
     theta = graphcut.edge_theta(angle, cfg.convex_factor, cfg.theta_eps)
-    w = (graphcut.classic_weights(theta, length) if name == "graphcut_classic"
-         else graphcut.agd_weights(theta, graphcut.normalize_features(f, cfg.feature_norm), pairs, cfg.omega))
+    w = (
+        graphcut.classic_weights(theta, length)
+        if name == "graphcut_classic"
+        else graphcut.agd_weights(theta, graphcut.normalize_features(f, cfg.feature_norm), pairs, cfg.omega)
+    )
     assert w[ridge].min() > 0 and w[ridge].min() > w[valley].max()  # a ridge is never free, and dearer
     mesh = Mesh(V, F, source="step")
     for sure in (0, 1):  # whichever label the top carries, the riser follows it

@@ -9,8 +9,17 @@ from matplotlib.figure import Figure
 from matplotlib.image import imread
 from mpl_toolkits.mplot3d import proj3d
 
-from meshseg.render import (UNLABELLED, _accuracy_title, _area_accuracy, _camera, _row_normalise, confusion_png,
-                            label_colors, label_comparison_png, render_labels)
+from meshseg.render import (
+    UNLABELLED,
+    _accuracy_title,
+    _area_accuracy,
+    _camera,
+    _row_normalise,
+    confusion_png,
+    label_colors,
+    label_comparison_png,
+    render_labels,
+)
 
 SIZE = 90
 

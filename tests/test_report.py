@@ -32,8 +32,9 @@ SYNTH = REPO / "experiments/synthetic.yaml"
 
 
 def cli(module: str, *args, env: dict, cwd: Path = REPO) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", module, *args], cwd=cwd, env=env, capture_output=True, text=True,
-                          timeout=900)
+    return subprocess.run(
+        [sys.executable, "-m", module, *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=900
+    )
 
 
 def read_csv(path: Path) -> list[dict]:
@@ -68,7 +69,7 @@ def test_bootstrap_interval_brackets_the_mean_and_narrows_with_more_meshes():
     lo2, hi2 = bootstrap_ci([many], 4000, 0.95, np.random.default_rng(1))
     lo3, hi3 = bootstrap_ci([few], 4000, 0.5, np.random.default_rng(1))
     assert lo < 95 < hi and lo2 < 95 < hi2
-    assert hi2 - lo2 < (hi - lo) / 3     # the standard error shrinks like 1/sqrt(n): 8 -> 200 meshes
+    assert hi2 - lo2 < (hi - lo) / 3  # the standard error shrinks like 1/sqrt(n): 8 -> 200 meshes
     assert hi3 - lo3 < hi - lo
     assert 90 <= lo and hi <= 100
 
@@ -98,18 +99,26 @@ def test_a_cells_generator_is_its_identitys():
     draw = lambda seed, *identity: cell_rng(seed, *identity).integers(0, 2**31, 4).tolist()
     a = draw(0, "set", "PSB", "Teddy", "3B")
     assert a == draw(0, "set", "PSB", "Teddy", "3B")
-    others = [draw(1, "set", "PSB", "Teddy", "3B"), draw(0, "set", "PSB", "Teddy", "1B"),
-              draw(0, "set", "PSB", "Cup", "3B"), draw(0, "average", "PSB", "Teddy", "3B"),
-              draw(0, "set", "COSEG", "Teddy", "3B")]
+    others = [
+        draw(1, "set", "PSB", "Teddy", "3B"),
+        draw(0, "set", "PSB", "Teddy", "1B"),
+        draw(0, "set", "PSB", "Cup", "3B"),
+        draw(0, "average", "PSB", "Teddy", "3B"),
+        draw(0, "set", "COSEG", "Teddy", "3B"),
+    ]
     assert all(o != a for o in others) and len({tuple(o) for o in others}) == len(others)
 
 
 def test_missing_cells_are_structured_and_make_their_sweeps():
-    gap = Cell(COL, None, folds=5, missing=(1, 3), overrides=("dataset=psb", "model=cnn1d", "budget=cpu"),
-               category="Teddy")
+    gap = Cell(
+        COL, None, folds=5, missing=(1, 3), overrides=("dataset=psb", "model=cnn1d", "budget=cpu"), category="Teddy"
+    )
     ok = Cell(COL, None, accs=np.array([90.0]), folds=1)
-    rows = [Row("Teddy", "set", "PSB", [gap]), Row("Cup", "set", "PSB", [ok]),
-            Row("Average", "average", "PSB", [Cell(COL, None, members=[gap, ok])])]
+    rows = [
+        Row("Teddy", "set", "PSB", [gap]),
+        Row("Cup", "set", "PSB", [ok]),
+        Row("Average", "average", "PSB", [Cell(COL, None, members=[gap, ok])]),
+    ]
     (m,) = missing_cells(Table(None, rows, ("budget=cpu",), "acc", 0.95))
     assert m == MissingCell("Teddy", "a", ("dataset=psb", "model=cnn1d", "budget=cpu"), "Teddy", (1, 3))
     assert m.sweep() == ["dataset=psb", "model=cnn1d", "budget=cpu", "category=Teddy", "fold=1,3"]
@@ -117,13 +126,17 @@ def test_missing_cells_are_structured_and_make_their_sweeps():
 
 # --- manifests and settings -----------------------------------------------------------------------
 
-@pytest.mark.parametrize("edit, problem", [
-    (lambda d: d.update(name="other"), "differs from the file name"),
-    (lambda d: d["groups"][0]["sets"][0].update(published=[1.0]), "expected a list of 3 numbers"),
-    (lambda d: d["columns"][0].update(overrides=["model cnn1d"]), "key=value"),
-    (lambda d: d["groups"][0]["sets"][1].update(published=["x", None, None]), "'x' is not a number"),
-    (lambda d: d.pop("columns"), "missing key"),
-])
+
+@pytest.mark.parametrize(
+    "edit, problem",
+    [
+        (lambda d: d.update(name="other"), "differs from the file name"),
+        (lambda d: d["groups"][0]["sets"][0].update(published=[1.0]), "expected a list of 3 numbers"),
+        (lambda d: d["columns"][0].update(overrides=["model cnn1d"]), "key=value"),
+        (lambda d: d["groups"][0]["sets"][1].update(published=["x", None, None]), "'x' is not a number"),
+        (lambda d: d.pop("columns"), "missing key"),
+    ],
+)
 def test_a_bad_manifest_names_the_file_and_the_problem(tmp_path, edit, problem):
     doc = yaml.safe_load(SYNTH.read_text())
     edit(doc)
@@ -140,7 +153,7 @@ def test_report_settings_are_split_from_run_overrides():
     args = ["budget=cpu", "report.sets=[Teddy]", "report.n_boot=10", "tracking.uri=x", "hydra/launcher=joblib"]
     app, run = split_argv(["m.yaml", *args])
     assert app == ["manifest=m.yaml", "report.sets=[Teddy]", "report.n_boot=10", "hydra/launcher=joblib"]
-    assert run == ["budget=cpu", "tracking.uri=x", "hydra/launcher=joblib"]   # launcher: for reproduce's sweeps
+    assert run == ["budget=cpu", "tracking.uri=x", "hydra/launcher=joblib"]  # launcher: for reproduce's sweeps
     cfg = compose_config("report", "m.yaml", args)
     assert cfg.manifest == "m.yaml" and list(cfg.report.sets) == ["Teddy"] and cfg.report.n_boot == 10
     assert run_overrides(cfg) == run and cfg.report.metric == "acc" and "dry_run" not in cfg.report
@@ -148,24 +161,36 @@ def test_report_settings_are_split_from_run_overrides():
     assert compose_config("reproduce", "m.yaml", ["report.dry_run=true"]).report.dry_run is True
     with pytest.raises(ConfigError, match="unknown report setting 'nope'.*report.metric, report.n_boot"):
         compose_config("report", "m.yaml", ["report.nope=1"])
-    with pytest.raises(ConfigError, match="unknown report setting 'dry_run'"):   # reproduce's alone
+    with pytest.raises(ConfigError, match="unknown report setting 'dry_run'"):  # reproduce's alone
         compose_config("report", "m.yaml", ["report.dry_run=true"])
 
 
 def test_run_overrides_reach_the_runs_verbatim():
     """Whatever a run override holds (quotes, backslashes, brackets, interpolations) arrives unchanged."""
-    odd = ["a=it's", "b=c\\", "d=\\'e", "features.groups=[curvature,pca,gc]", "tracking.uri=sqlite:////x y/m.db",
-           "hydra.run.dir=${paths.log_dir}/x", "e=\"q\""]
+    odd = [
+        "a=it's",
+        "b=c\\",
+        "d=\\'e",
+        "features.groups=[curvature,pca,gc]",
+        "tracking.uri=sqlite:////x y/m.db",
+        "hydra.run.dir=${paths.log_dir}/x",
+        'e="q"',
+    ]
     assert run_overrides(compose_config("report", "m.yaml", odd)) == odd
 
 
-@pytest.mark.parametrize("args, problem", [
-    (["report.metric=f1"],
-     r"report.metric=f1 is not allowed: choose acc \(after refinement\), acc_raw \(before refinement\)$"),
-    (["report.n_boot=0"], "report.n_boot=0 must be an integer >= 1"),
-    (["report.level=95"], "report.level=95 must be a number between 0 and 1"),
-    (["report.sets=Teddy"], "report.sets=Teddy must be a list"),
-])
+@pytest.mark.parametrize(
+    "args, problem",
+    [
+        (
+            ["report.metric=f1"],
+            r"report.metric=f1 is not allowed: choose acc \(after refinement\), acc_raw \(before refinement\)$",
+        ),
+        (["report.n_boot=0"], "report.n_boot=0 must be an integer >= 1"),
+        (["report.level=95"], "report.level=95 must be a number between 0 and 1"),
+        (["report.sets=Teddy"], "report.sets=Teddy must be a list"),
+    ],
+)
 def test_bad_report_settings_are_refused(args, problem):
     from meshseg.report.config import check_config
 
@@ -174,6 +199,7 @@ def test_bad_report_settings_are_refused(args, problem):
 
 
 # --- errors: the user's as one line, the program's with their traceback ------------------------------------
+
 
 def in_process(main, argv, tmp_path, monkeypatch):
     """Run a command's main() here (Hydra's logging left alone, its folder under tmp_path); its exit status."""
@@ -186,11 +212,14 @@ def in_process(main, argv, tmp_path, monkeypatch):
 
 
 @pytest.mark.parametrize("main", [report_main, reproduce_main], ids=["report", "reproduce"])
-@pytest.mark.parametrize("args, problem", [
-    ([], "experiments/absent.yaml: no such manifest file"),
-    (["report.nope=1"], "unknown report setting 'nope'"),
-    (["report.metric=f1"], "report.metric=f1 is not allowed"),
-])
+@pytest.mark.parametrize(
+    "args, problem",
+    [
+        ([], "experiments/absent.yaml: no such manifest file"),
+        (["report.nope=1"], "unknown report setting 'nope'"),
+        (["report.metric=f1"], "report.metric=f1 is not allowed"),
+    ],
+)
 def test_a_user_error_is_one_error_line(main, args, problem, tmp_path, monkeypatch, capsys):
     assert in_process(main, ["experiments/absent.yaml", *args], tmp_path, monkeypatch) == 2
     err = capsys.readouterr().err.strip()
@@ -200,16 +229,21 @@ def test_a_user_error_is_one_error_line(main, args, problem, tmp_path, monkeypat
 def test_a_run_override_or_a_column_that_does_not_compose_is_named(tmp_path, monkeypatch, capsys):
     assert in_process(report_main, [str(SYNTH), "budgte=cpu"], tmp_path, monkeypatch) == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith("error: run overrides budgte=cpu hydra/job_logging=none hydra/hydra_logging=none do not "
-                          f"apply to {SYNTH} group synthetic, column 3B: Could not override 'budgte'.")
+    assert err.startswith(
+        "error: run overrides budgte=cpu hydra/job_logging=none hydra/hydra_logging=none do not "
+        f"apply to {SYNTH} group synthetic, column 3B: Could not override 'budgte'."
+    )
     assert len(err.splitlines()) == 1
     doc = yaml.safe_load(SYNTH.read_text())
     doc["columns"][1]["overrides"] = ["model=cnn9"]
     (tmp_path / "synthetic.yaml").write_text(yaml.safe_dump(doc))
     with pytest.raises(ManifestError, match=r"synthetic.yaml: group synthetic, column 1B: .*cnn9"):
         report(tmp_path / "synthetic.yaml", ["budget=smoke", "report.log=false"])
-    with pytest.raises(ConfigError, match=r"report.sets: \['Teddy'\] name no set of synthetic; its sets are "
-                                          r"Table, Cup, Figure$"):
+    with pytest.raises(
+        ConfigError,
+        match=r"report.sets: \['Teddy'\] name no set of synthetic; its sets are "
+        r"Table, Cup, Figure$",
+    ):
         report(SYNTH, ["report.sets=[Cup,Teddy]", "report.log=false"])
 
 
@@ -218,6 +252,7 @@ def test_a_run_override_or_a_column_that_does_not_compose_is_named(tmp_path, mon
 def test_a_programming_error_propagates_with_its_traceback(main, exc, tmp_path, monkeypatch, capsys):
     """A bug (here: the YAML reader raising) is no user error: not `error: ...`, but the exception itself
     (HYDRA_FULL_ERROR=1), or its traceback and exit status 1 (Hydra's own report)."""
+
     def broken(*a, **k):
         raise exc("bug in the report")
 
@@ -240,15 +275,21 @@ def test_a_damaged_run_is_a_user_error_naming_the_run(smoke_store, tmp_path, cac
         raise OSError(f"{path} gone")
 
     monkeypatch.setattr(MlflowClient, "download_artifacts", gone)
-    assert in_process(report_main, [str(SYNTH), *SMOKE, "report.log=false", f"report.out_dir={tmp_path}"],
-                      tmp_path, monkeypatch) == 2
+    assert (
+        in_process(
+            report_main, [str(SYNTH), *SMOKE, "report.log=false", f"report.out_dir={tmp_path}"], tmp_path, monkeypatch
+        )
+        == 2
+    )
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1
-    assert re.fullmatch(r"error: run \w+ \(.+\): cannot read acc from per_mesh.csv: OSError: per_mesh.csv gone",
-                        err), err
+    assert re.fullmatch(r"error: run \w+ \(.+\): cannot read acc from per_mesh.csv: OSError: per_mesh.csv gone", err), (
+        err
+    )
 
 
 # --- on the smoke store ---------------------------------------------------------------------------
+
 
 def mesh_mean(store: Path, tags: dict) -> float:
     """A cell computed by hand: the runs with these tags, their per_mesh.csv rows, mean of `acc` in %."""
@@ -258,7 +299,7 @@ def mesh_mean(store: Path, tags: dict) -> float:
     for run in runs_of(store, filter_string=filt):
         path = client.download_artifacts(run.info.run_id, "per_mesh.csv")
         accs += [100 * float(r["acc"]) for r in read_csv(Path(path))]
-    assert len(accs) == 5, tags    # every mesh of the set tested exactly once over the 2 folds
+    assert len(accs) == 5, tags  # every mesh of the set tested exactly once over the 2 folds
     return float(np.mean(accs))
 
 
@@ -267,14 +308,17 @@ def test_report_writes_every_format_from_the_runs_and_logs_itself(smoke_store, t
     (tmp_path / "cwd").mkdir()
     r = cli("meshseg.report", str(SYNTH), *SMOKE, f"report.out_dir={tmp_path}", env=env, cwd=tmp_path / "cwd")
     assert r.returncode == 0, r.stderr[-3000:]
-    assert list((tmp_path / "cwd").iterdir()) == []      # Hydra's folder is under paths.log_dir, not the cwd
+    assert list((tmp_path / "cwd").iterdir()) == []  # Hydra's folder is under paths.log_dir, not the cwd
     (logs,) = (tmp_path / "logs/report").iterdir()
     assert (logs / ".hydra/overrides.yaml").is_file() and (logs / "report.log").is_file()
     out = tmp_path / "synthetic"
     assert all((out / f).stat().st_size > 0 for f in FILES)
     rows = read_csv(out / "table.csv")
-    columns = {"3B": {"model": "cnn1d", "branches": "3"}, "1B": {"model": "cnn1d", "branches": "1"},
-               "rf": {"model": "rf"}}
+    columns = {
+        "3B": {"model": "cnn1d", "branches": "3"},
+        "1B": {"model": "cnn1d", "branches": "1"},
+        "rf": {"model": "rf"},
+    }
     md = (out / "table.md").read_text()
     for key, tags in columns.items():
         values = []
@@ -289,7 +333,7 @@ def test_report_writes_every_format_from_the_runs_and_logs_itself(smoke_store, t
         avg = cell(rows, "Average", key)
         assert avg["kind"] == "average" and float(avg["reproduced"]) == pytest.approx(np.mean(values), abs=1e-3)
     tex, html = (out / "table.tex").read_text(), (out / "table.html").read_text()
-    assert r"\begin{tabular}" in tex and r"\toprule" in tex and tex.count(r"\\") == 1 + 1 + 4   # 2 header + 4 rows
+    assert r"\begin{tabular}" in tex and r"\toprule" in tex and tex.count(r"\\") == 1 + 1 + 4  # 2 header + 4 rows
     assert html.count("<tr") == 2 + 4 and "<table>" in html
     import matplotlib.image
 
@@ -345,18 +389,23 @@ def test_a_deleted_fold_is_incomplete_and_reproduce_launches_only_it(smoke_store
     """On a copy of the store: delete rf/cup fold 1; the cell and the rf average have no number;
     reproduce (dry run first) launches exactly that run, which gives back the same number."""
     (tmp_path / "mlruns").mkdir()
-    shutil.copy(smoke_store / "mlflow.db", tmp_path / "mlruns/mlflow.db")   # artifact paths are absolute
+    shutil.copy(smoke_store / "mlflow.db", tmp_path / "mlruns/mlflow.db")  # artifact paths are absolute
     env = smoke_env(tmp_path, cache_dir)
     args = [str(SYNTH), *SMOKE, f"report.out_dir={tmp_path / 'reports'}"]
     before = float(cell(read_csv(smoke_report(tmp_path, env, args)), "Cup", "rf")["reproduced"])
-    (victim,) = runs_of(tmp_path / "mlruns",
-                        filter_string="tags.model = 'rf' and tags.category = 'cup' and tags.fold = '1'")
+    (victim,) = runs_of(
+        tmp_path / "mlruns", filter_string="tags.model = 'rf' and tags.category = 'cup' and tags.fold = '1'"
+    )
     MlflowClient(f"sqlite:///{tmp_path}/mlruns/mlflow.db").delete_run(victim.info.run_id)
 
     rows = read_csv(smoke_report(tmp_path, env, args))
     c, avg = cell(rows, "Cup", "rf"), cell(rows, "Average", "rf")
-    assert (c["status"], c["reproduced"], c["why"], c["folds_missing"]) == ("incomplete", "", "1 of 2 folds missing",
-                                                                           "1")
+    assert (c["status"], c["reproduced"], c["why"], c["folds_missing"]) == (
+        "incomplete",
+        "",
+        "1 of 2 folds missing",
+        "1",
+    )
     assert (avg["status"], avg["reproduced"], avg["why"]) == ("incomplete", "", "1 of 3 sets not complete")
     assert cell(rows, "Cup", "3B")["status"] == "ok"
     md = (tmp_path / "reports/synthetic/table.md").read_text()
@@ -374,7 +423,7 @@ def test_a_deleted_fold_is_incomplete_and_reproduce_launches_only_it(smoke_store
     new = [f for f in finished if f.info.run_id not in {x.info.run_id for x in runs_of(smoke_store)}]
     assert [(x.data.tags["model"], x.data.tags["category"], x.data.tags["fold"]) for x in new] == [("rf", "cup", "1")]
     c = cell(read_csv(tmp_path / "reports/synthetic/table.csv"), "Cup", "rf")
-    assert c["status"] == "ok" and float(c["reproduced"]) == pytest.approx(before, abs=1e-4)   # same seed, same run
+    assert c["status"] == "ok" and float(c["reproduced"]) == pytest.approx(before, abs=1e-4)  # same seed, same run
 
 
 def smoke_report(tmp_path: Path, env: dict, args: list) -> Path:
@@ -384,6 +433,7 @@ def smoke_report(tmp_path: Path, env: dict, args: list) -> Path:
 
 
 # --- the paper's tables ---------------------------------------------------------------------------
+
 
 @pytest.mark.parametrize("stem", sorted(PAPER_TABLES))
 def test_the_report_prints_the_papers_numbers(stem, tmp_path, cache_dir, monkeypatch):
@@ -398,12 +448,13 @@ def test_the_report_prints_the_papers_numbers(stem, tmp_path, cache_dir, monkeyp
     for r in rows:
         printed.setdefault((r["group"], r["row"]), []).append(None if r["published"] == "" else float(r["published"]))
     paper = [row for t in parse_tabulars(paper_tex(), PAPER_TABLES[stem]) for row in t]
-    extra = 1 if stem == "table4_fixed_splits" else 0          # Table 4's "Testing Meshes" column
+    extra = 1 if stem == "table4_fixed_splits" else 0  # Table 4's "Testing Meshes" column
     assert [(k[1], v) for k, v in printed.items()] == [(name, values[extra:]) for name, values in paper]
     assert {r["status"] for r in rows} <= {"incomplete", "unavailable", "published"}
     assert not any(r["reproduced"] for r in rows)
     md = (tmp_path / stem / "table.md").read_text()
     name, values = paper[0]
     first = next(line for line in md.splitlines() if line.startswith(f"| {name} |"))
-    assert all(f"/ {v:.2f}" in first or f"| {v:.2f}" in first or f"{v:.2f} |" in first
-               for v in values[extra:] if v is not None)
+    assert all(
+        f"/ {v:.2f}" in first or f"| {v:.2f}" in first or f"{v:.2f} |" in first for v in values[extra:] if v is not None
+    )

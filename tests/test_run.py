@@ -15,10 +15,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import REPO
 from hydra import compose, initialize_config_dir
 from mlflow import MlflowClient
 
-from conftest import REPO
 from meshseg import CONF_DIR
 from meshseg.tracking import CONTRACT_TAGS, config_hash, flatten
 
@@ -33,16 +33,26 @@ def compose_run(*overrides):
 @pytest.fixture
 def store(tmp_path, cache_dir, monkeypatch):
     """Environment for one test's runs: its own MLflow store and logs, the session's feature cache."""
-    env = {"MESHSEG_CACHE_DIR": str(cache_dir), "MESHSEG_MLFLOW_DIR": str(tmp_path / "mlruns"),
-           "MESHSEG_LOG_DIR": str(tmp_path / "logs")}
+    env = {
+        "MESHSEG_CACHE_DIR": str(cache_dir),
+        "MESHSEG_MLFLOW_DIR": str(tmp_path / "mlruns"),
+        "MESHSEG_LOG_DIR": str(tmp_path / "logs"),
+    }
     for k, v in env.items():
         monkeypatch.setenv(k, v)
     return tmp_path / "mlruns"
 
 
 def meshseg_run(*overrides, timeout=600, **kw):
-    return subprocess.run([sys.executable, "-m", "meshseg.run", *overrides], cwd=REPO, capture_output=True,
-                          text=True, timeout=timeout, env=os.environ.copy(), **kw)
+    return subprocess.run(
+        [sys.executable, "-m", "meshseg.run", *overrides],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env=os.environ.copy(),
+        **kw,
+    )
 
 
 def runs(store: Path, status: str | None = None):
@@ -54,10 +64,16 @@ def runs(store: Path, status: str | None = None):
 
 # --- configuration --------------------------------------------------------------------------------
 
-GROUPS = {"dataset": ["synthetic", "psb", "coseg"], "features": ["f800", "f600", "cf0", "cf1", "cf0_1", "cf1_5", "cf0_5"],
-          "model": ["cnn1d", "cnn2d", "pca_nn", "ae_nn", "ae_rf", "rf"], "split": ["loo", "5fold", "fixed"],
-          "refine": ["none", "graphcut_classic", "graphcut_agd"],
-          "budget": ["smoke", "demo", "cpu", "paper"], "trainer": ["cpu", "gpu"], "tracking": ["mlflow"]}
+GROUPS = {
+    "dataset": ["synthetic", "psb", "coseg"],
+    "features": ["f800", "f600", "cf0", "cf1", "cf0_1", "cf1_5", "cf0_5"],
+    "model": ["cnn1d", "cnn2d", "pca_nn", "ae_nn", "ae_rf", "rf"],
+    "split": ["loo", "5fold", "fixed"],
+    "refine": ["none", "graphcut_classic", "graphcut_agd"],
+    "budget": ["smoke", "demo", "cpu", "paper"],
+    "trainer": ["cpu", "gpu"],
+    "tracking": ["mlflow"],
+}
 
 
 @pytest.mark.parametrize("group, option", [(g, o) for g, opts in GROUPS.items() for o in opts])
@@ -107,16 +123,19 @@ def test_bad_values_fail_at_once_listing_what_is_allowed(store):
     assert r.returncode == 1 and "error: fold=9 is out of range: split 5fold of table has folds 0..4" in r.stderr
 
 
-@pytest.mark.parametrize("override, message", [
-    ("branches=5", "error: branches=5 is not allowed: choose one of [1, 2, 3, 4]"),
-    ("fold=9", "error: fold=9 is out of range: split 5fold of table has folds 0..4"),
-    ("category=chair", "has no category 'chair'; it has ['table', 'cup', 'figure']"),
-    ("budget.epochs=0", "error: budget smoke: epochs and batch_size must be >= 1"),
-    ("tracking.uri=garbage://x", "error: tracking.uri=garbage://x: unknown store scheme 'garbage'"),
-    ("refine.lam=-1", "refine.lam=-1"),
-    ("+modle=cnn1d", "error: unknown setting 'modle' (did you mean model?)"),
-    ("modle=cnn1d", "error: unknown setting 'modle' (did you mean model?)"),
-])
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("branches=5", "error: branches=5 is not allowed: choose one of [1, 2, 3, 4]"),
+        ("fold=9", "error: fold=9 is out of range: split 5fold of table has folds 0..4"),
+        ("category=chair", "has no category 'chair'; it has ['table', 'cup', 'figure']"),
+        ("budget.epochs=0", "error: budget smoke: epochs and batch_size must be >= 1"),
+        ("tracking.uri=garbage://x", "error: tracking.uri=garbage://x: unknown store scheme 'garbage'"),
+        ("refine.lam=-1", "refine.lam=-1"),
+        ("+modle=cnn1d", "error: unknown setting 'modle' (did you mean model?)"),
+        ("modle=cnn1d", "error: unknown setting 'modle' (did you mean model?)"),
+    ],
+)
 def test_bad_values_under_m_get_one_line_before_any_work(store, override, message):
     """A sweep checks every job's settings before the first starts: one `error:` line, no traceback,
     nothing in the store (`refine.lam=-1` used to be refused only after the fold had trained)."""
@@ -137,6 +156,7 @@ def test_config_hash_ignores_paths_and_sees_knobs():
 
 # --- runs ------------------------------------------------------------------------------------------
 
+
 def test_one_run_follows_the_tracking_contract_and_reruns_skip(store):
     r = meshseg_run(*SMALL, "category=cup", "fold=1")
     assert r.returncode == 0, r.stderr[-3000:]
@@ -144,8 +164,17 @@ def test_one_run_follows_the_tracking_contract_and_reruns_skip(store):
     assert run.info.status == "FINISHED"
     tags = run.data.tags
     assert set(CONTRACT_TAGS) <= set(tags)
-    assert (tags["dataset"], tags["category"], tags["fold"], tags["split"], tags["budget"], tags["model"],
-            tags["branches"], tags["refine"], tags["features"]) == ("synthetic", "cup", "1", "5fold", "smoke", "cnn1d", "3", "graphcut_agd", "local")
+    assert (
+        tags["dataset"],
+        tags["category"],
+        tags["fold"],
+        tags["split"],
+        tags["budget"],
+        tags["model"],
+        tags["branches"],
+        tags["refine"],
+        tags["features"],
+    ) == ("synthetic", "cup", "1", "5fold", "smoke", "cnn1d", "3", "graphcut_agd", "local")
     m = run.data.metrics
     assert 0 <= m["test_acc_raw"] <= 1 and 0 <= m["test_acc"] <= 1
     assert run.data.params["budget.epochs"] == "2" and run.data.params["category"] == "cup"
@@ -154,8 +183,14 @@ def test_one_run_follows_the_tracking_contract_and_reruns_skip(store):
     lrs = [h.value for h in client.get_metric_history(run.info.run_id, "lr")]
     assert np.allclose(lrs, [1e-2, 1e-4])
     local = Path(client.download_artifacts(run.info.run_id, ""))
-    assert sorted(p.name for p in local.iterdir()) == ["config.yaml", "confusion.png", "per_mesh.csv", "predictions.npz", "renders"]
-    assert [p.name for p in (local / "renders").iterdir()] == ["mesh_1.png"]   # the fold's one test mesh
+    assert sorted(p.name for p in local.iterdir()) == [
+        "config.yaml",
+        "confusion.png",
+        "per_mesh.csv",
+        "predictions.npz",
+        "renders",
+    ]
+    assert [p.name for p in (local / "renders").iterdir()] == ["mesh_1.png"]  # the fold's one test mesh
     assert (local / "confusion.png").read_bytes()[:4] == b"\x89PNG"
     table = (local / "per_mesh.csv").read_text().splitlines()
     assert table[0] == "mesh,faces,area,acc_raw,acc" and table[1].startswith("1,")  # 5fold: fold 1 tests mesh 1
@@ -199,12 +234,23 @@ def test_a_failing_category_is_marked_failed_and_the_others_finish(store, tmp_pa
             (root / "gt" / f"{mesh.id}.seg").write_text("\n".join(str(v + 1) for v in mesh.labels) + "\n")
     bad = tmp_path / "coseg" / "tables" / "shapes" / "3.off"
     bad.write_text("\n".join(bad.read_text().splitlines()[:-40]) + "\n")
-    r = meshseg_run("dataset=coseg", f"dataset.root={tmp_path / 'coseg'}", "budget=smoke", "split.k=2",
-                    "features.groups=[curvature,pca,gc]", "features.name=local", "-m")
+    r = meshseg_run(
+        "dataset=coseg",
+        f"dataset.root={tmp_path / 'coseg'}",
+        "budget=smoke",
+        "split.k=2",
+        "features.groups=[curvature,pca,gc]",
+        "features.name=local",
+        "-m",
+    )
     assert r.returncode != 0
     done = runs(store)
     assert sorted((x.data.tags["category"], x.data.tags["fold"], x.info.status) for x in done) == [
-        ("cups", "0", "FINISHED"), ("cups", "1", "FINISHED"), ("tables", "0", "FAILED"), ("tables", "1", "FAILED")]
+        ("cups", "0", "FINISHED"),
+        ("cups", "1", "FINISHED"),
+        ("tables", "0", "FAILED"),
+        ("tables", "1", "FAILED"),
+    ]
     for failed in runs(store, "FAILED"):
         assert f"{bad}:" in failed.data.tags["error"]
 
@@ -212,7 +258,9 @@ def test_a_failing_category_is_marked_failed_and_the_others_finish(store, tmp_pa
 def test_killed_sweep_resumes_doing_only_what_is_missing(store):
     """SIGKILL a sweep once two folds have FINISHED; rerunning skips those and redoes the rest."""
     args = [sys.executable, "-m", "meshseg.run", *SMALL, "category=table", "-m"]
-    proc = subprocess.Popen(args, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    proc = subprocess.Popen(
+        args, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True
+    )
     db = store / "mlflow.db"
     deadline = time.time() + 300
     finished = 0
@@ -247,8 +295,15 @@ def test_killed_sweep_resumes_doing_only_what_is_missing(store):
 
 
 def test_two_joblib_workers_share_one_sqlite_store(store):
-    r = meshseg_run(*SMALL, "category=cup", "fold=0,2", "trainer.threads=1", "hydra/launcher=joblib",
-                    "hydra.launcher.n_jobs=2", "-m")
+    r = meshseg_run(
+        *SMALL,
+        "category=cup",
+        "fold=0,2",
+        "trainer.threads=1",
+        "hydra/launcher=joblib",
+        "hydra.launcher.n_jobs=2",
+        "-m",
+    )
     assert r.returncode == 0, r.stderr[-3000:]
     assert "locked" not in r.stderr
     done = runs(store, "FINISHED")

@@ -3,8 +3,8 @@
 import re
 
 import pytest
-
 from conftest import SPLIT_FILE, require
+
 from meshseg.data.datasets import Synthetic
 from meshseg.data.mesh import MeshDataError
 from meshseg.data.splits import kfold, leave_one_out, make_folds, read_split_file

@@ -21,7 +21,7 @@ INDICES = (0, 1, 2)
 CASES = [(c, i) for c in CATEGORIES for i in INDICES]
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _mesh(category: str, index: int, seed: int = 0):
     return sample(category, index, seed)
 
@@ -65,7 +65,9 @@ def test_determinism_does_not_depend_on_python_hash_seed():
     root = str(Path(__file__).resolve().parents[1])
     digests = set()
     for hash_seed in ("1", "2"):
-        env = dict(os.environ, PYTHONHASHSEED=hash_seed, PYTHONPATH=root + os.pathsep + os.environ.get("PYTHONPATH", ""))
+        env = dict(
+            os.environ, PYTHONHASHSEED=hash_seed, PYTHONPATH=root + os.pathsep + os.environ.get("PYTHONPATH", "")
+        )
         out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
         digests.add(out.stdout.strip())
     assert digests == {_digest(generate("cup", 4, seed=2))}
@@ -87,7 +89,10 @@ def test_proportions_vary_within_a_category():
 
 def test_face_range_changes_tessellation_not_shape():
     # Narrow ranges: one blind rescale of the grid spacing rarely lands in them.
-    small, big = sample("figure", 0, min_faces=2400, max_faces=2600), sample("figure", 0, min_faces=5000, max_faces=5200)
+    small, big = (
+        sample("figure", 0, min_faces=2400, max_faces=2600),
+        sample("figure", 0, min_faces=5000, max_faces=5200),
+    )
     assert 2400 <= len(small.faces) <= 2600 and 5000 <= len(big.faces) <= 5200
     assert 3000 <= len(generate("table", 1, min_faces=3000, max_faces=3200)[1]) <= 3200
     assert np.allclose(small.rotation, big.rotation)

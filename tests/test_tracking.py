@@ -10,13 +10,12 @@ import threading
 import time
 
 import pytest
-from mlflow import MlflowClient
+from test_run import SMALL, compose_run, meshseg_run, runs
+from test_run import store as store  # noqa: F401  (a fixture)
 
 from meshseg.data.splits import Fold
 from meshseg.errors import TrackingError
 from meshseg.tracking import LEASE_HEARTBEAT, LEASE_OWNER, Tracker, fold_identity, store_uri
-
-from test_run import SMALL, compose_run, meshseg_run, runs, store  # noqa: F401  (store is a fixture)
 
 
 def test_processes_opening_a_new_sqlite_store_at_once_all_succeed(tmp_path):
@@ -30,8 +29,10 @@ def test_processes_opening_a_new_sqlite_store_at_once_all_succeed(tmp_path):
         t = Tracker("sqlite:///{tmp_path}/mlflow.db", "meshseg")
         print(t.experiment_id)
     """)
-    procs = [subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-             for _ in range(3)]
+    procs = [
+        subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        for _ in range(3)
+    ]
     outs = [p.communicate(timeout=120) for p in procs]
     assert [p.returncode for p in procs] == [0, 0, 0], [err[-2000:] for _, err in outs]
     assert len({out.strip() for out, _ in outs}) == 1  # one experiment, found by all
@@ -109,8 +110,9 @@ def test_two_sweeps_of_one_study_at_once_train_each_fold_once(store):
     args = [sys.executable, "-m", "meshseg.run", *SMALL, "category=cup", "trainer.threads=1", "-m"]
     from conftest import REPO
 
-    procs = [subprocess.Popen(args, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-             for _ in range(2)]
+    procs = [
+        subprocess.Popen(args, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) for _ in range(2)
+    ]
     outs = [p.communicate(timeout=600)[0] for p in procs]
     assert [p.returncode for p in procs] == [0, 0], outs[0][-2000:] + outs[1][-2000:]
     done = runs(store, "FINISHED")
@@ -149,21 +151,31 @@ def test_run_identity_is_the_folds_meshes():
     assert h != fold_identity(cfg, "table", Fold(0, ("1", "2", "3"), ("4",)), "other data")[1]
     assert h != fold_identity(cfg, "cup", Fold(0, ("1", "2", "3"), ("4",)), "data")[1]
     moved = compose_run("split=fixed", "split.file=/elsewhere.txt")  # the file's name alone is no knob
-    assert fold_identity(moved, "table", Fold(0, ("1",), ("2",)), "d")[1] == fold_identity(
-        compose_run("split=fixed"), "table", Fold(0, ("1",), ("2",)), "d")[1]
+    assert (
+        fold_identity(moved, "table", Fold(0, ("1",), ("2",)), "d")[1]
+        == fold_identity(compose_run("split=fixed"), "table", Fold(0, ("1",), ("2",)), "d")[1]
+    )
 
 
 def test_programming_errors_keep_their_traceback(store, tmp_path):
     """A user error is one line; anything else is a bug and shows where it happened."""
     hook = tmp_path / "sitecustomize.py"  # makes the mesh metric raise a TypeError inside a real run
-    hook.write_text("import meshseg.metrics as m\n"
-                    "def boom(*a, **k):\n    raise TypeError('boom from the metric')\n"
-                    "m.mesh_scores = boom\n")
+    hook.write_text(
+        "import meshseg.metrics as m\n"
+        "def boom(*a, **k):\n    raise TypeError('boom from the metric')\n"
+        "m.mesh_scores = boom\n"
+    )
     env = {**os.environ, "PYTHONPATH": f"{tmp_path}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
     from conftest import REPO
 
-    r = subprocess.run([sys.executable, "-m", "meshseg.run", *SMALL, "category=cup", "fold=0", "tracking.renders=0"],
-                       cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
+    r = subprocess.run(
+        [sys.executable, "-m", "meshseg.run", *SMALL, "category=cup", "fold=0", "tracking.renders=0"],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert r.returncode == 1 and "Traceback" in r.stderr and "TypeError: boom from the metric" in r.stderr
     assert "error: boom" not in r.stderr
     (failed,) = runs(store, "FAILED")

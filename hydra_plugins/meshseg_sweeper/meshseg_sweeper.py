@@ -9,9 +9,10 @@ which then exits non-zero; any other failure keeps its traceback.
 
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Sequence
+from typing import Any
 
 from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
 from hydra.core.config_store import ConfigStore
@@ -24,15 +25,15 @@ from omegaconf import OmegaConf
 @dataclass
 class MeshsegSweeperConf:
     _target_: str = "hydra_plugins.meshseg_sweeper.meshseg_sweeper.MeshsegSweeper"
-    max_batch_size: Optional[int] = None
-    params: Optional[Dict[str, str]] = None
+    max_batch_size: int | None = None
+    params: dict[str, str] | None = None
 
 
 ConfigStore.instance().store(group="hydra/sweeper", name="meshseg", node=MeshsegSweeperConf, provider="meshseg")
 
 
 class MeshsegSweeper(BasicSweeper):
-    def split_arguments(self, overrides: List[Override], max_batch_size: Optional[int]) -> List[List[List[str]]]:
+    def split_arguments(self, overrides: list[Override], max_batch_size: int | None) -> list[list[list[str]]]:
         from meshseg.errors import MeshsegError
         from meshseg.run import sweep_cells
 
@@ -45,11 +46,16 @@ class MeshsegSweeper(BasicSweeper):
             except MeshsegError as e:
                 sys.exit(f"error: {e}")
             for category, fold in cells:
-                jobs.append([*combo, *([f"category={category}"] if category is not None else []),
-                             *([f"fold={fold}"] if fold is not None else [])])
+                jobs.append(
+                    [
+                        *combo,
+                        *([f"category={category}"] if category is not None else []),
+                        *([f"fold={fold}"] if fold is not None else []),
+                    ]
+                )
         return list(BasicSweeper.split_overrides_to_chunks(jobs, max_batch_size))
 
-    def sweep(self, arguments: List[str]) -> Any:
+    def sweep(self, arguments: list[str]) -> Any:
         """BasicSweeper.sweep, except that failed jobs are gathered and reported together at the end
         (the basic sweeper re-raises the first with a traceback, whatever it was)."""
         from meshseg.errors import MeshsegError
@@ -62,8 +68,8 @@ class MeshsegSweeper(BasicSweeper):
         sweep_dir.mkdir(parents=True, exist_ok=True)
         OmegaConf.save(self.config, sweep_dir / "multirun.yaml")
 
-        returns: List[Sequence[JobReturn]] = []
-        failed: List[JobReturn] = []
+        returns: list[Sequence[JobReturn]] = []
+        failed: list[JobReturn] = []
         initial_job_idx = 0
         t0 = time.perf_counter()
         while not self.is_done():
@@ -79,6 +85,8 @@ class MeshsegSweeper(BasicSweeper):
                 _ = other[0].return_value  # a programming error: Hydra prints its traceback
             lines = [f"error: job {' '.join(r.overrides or [])}: {r._return_value}" for r in failed]
             n = sum(len(b) for b in returns)
-            sys.exit("\n".join(lines) + f"\nsweep: {len(failed)} of {n} jobs failed "
-                     f"({time.perf_counter() - t0:.0f} s); their runs are FAILED in the store, a rerun retries them")
+            sys.exit(
+                "\n".join(lines) + f"\nsweep: {len(failed)} of {n} jobs failed "
+                f"({time.perf_counter() - t0:.0f} s); their runs are FAILED in the store, a rerun retries them"
+            )
         return returns

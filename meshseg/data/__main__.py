@@ -22,7 +22,11 @@ def summarize(dataset: MeshDataset, out=sys.stdout) -> tuple[int, int]:
             meshes += 1
             faces += mesh.n_faces
             degenerate += mesh.n_degenerate
-        print(f"{category:<16}{meshes:>7}{faces:>11}{len(dataset.label_names(category)):>7}{degenerate:>10}", file=out, flush=True)
+        print(
+            f"{category:<16}{meshes:>7}{faces:>11}{len(dataset.label_names(category)):>7}{degenerate:>10}",
+            file=out,
+            flush=True,
+        )
         n_meshes, n_faces = n_meshes + meshes, n_faces + faces
     print(f"total: {n_meshes} meshes, {n_faces} faces", file=out)
     return n_meshes, n_faces

@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import hashlib
 import re
+from collections.abc import Iterator
 from functools import cached_property
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
@@ -31,7 +31,7 @@ def normalise_name(name: str) -> str:
     return re.sub(r"[^a-z0-9]", "", name.lower())
 
 
-def build_dataset(cfg) -> "MeshDataset":
+def build_dataset(cfg) -> MeshDataset:
     """Instantiate `cfg.dataset`-style config; errors surface as themselves, not Hydra's wrapper."""
     from hydra.errors import InstantiationException
     from hydra.utils import instantiate
@@ -79,7 +79,9 @@ class _FileDataset(MeshDataset):
 
     def __init__(self, root: str, cache_dir: str = ".cache"):
         if root is None:
-            raise MeshDataError(f"dataset {self.name}", "dataset.root is not set: pass dataset.root=PATH (a folder or an archive)")
+            raise MeshDataError(
+                f"dataset {self.name}", "dataset.root is not set: pass dataset.root=PATH (a folder or an archive)"
+            )
         self.given_root = Path(root).expanduser()
         self.root = resolve_root(self.given_root, cache_dir)
 
@@ -112,7 +114,9 @@ class PSB(_FileDataset):
 
     def __init__(self, root: str, cache_dir: str = ".cache"):
         super().__init__(root, cache_dir)
-        self.root = _find_dir(self.root, lambda d: any(d.glob("*/*_labels.txt")), "L-PSB category folders (<Category>/<id>_labels.txt)")
+        self.root = _find_dir(
+            self.root, lambda d: any(d.glob("*/*_labels.txt")), "L-PSB category folders (<Category>/<id>_labels.txt)"
+        )
         self.categories = sorted(d.name for d in self.root.iterdir() if d.is_dir() and any(d.glob("*.off")))
         self._vocab: dict[str, tuple[str, ...]] = {}
 
@@ -194,8 +198,14 @@ class Synthetic(MeshDataset):
 
     name = "synthetic"
 
-    def __init__(self, categories: list[str] | None = None, meshes_per_category: int = 20, seed: int = 0,
-                 min_faces: int = 1500, max_faces: int = 6000):
+    def __init__(
+        self,
+        categories: list[str] | None = None,
+        meshes_per_category: int = 20,
+        seed: int = 0,
+        min_faces: int = 1500,
+        max_faces: int = 6000,
+    ):
         categories = list(categories or synthetic.CATEGORIES)
         unknown = sorted(set(categories) - set(synthetic.CATEGORIES))
         if unknown:
@@ -213,10 +223,19 @@ class Synthetic(MeshDataset):
 
     def load(self, category: str, mesh_id: str) -> Mesh:
         if mesh_id not in self.mesh_ids(category):
-            raise ConfigError(f"synthetic category {category!r} has no mesh {mesh_id!r}; ids are 0..{self.meshes_per_category - 1}")
+            raise ConfigError(
+                f"synthetic category {category!r} has no mesh {mesh_id!r}; ids are 0..{self.meshes_per_category - 1}"
+            )
         v, f, labels = synthetic.generate(category, int(mesh_id), self.seed, self.min_faces, self.max_faces)
-        return Mesh(v, f, labels, self.label_names(category), id=mesh_id, category=category,
-                    source=f"synthetic:{category}/{mesh_id}?seed={self.seed}")
+        return Mesh(
+            v,
+            f,
+            labels,
+            self.label_names(category),
+            id=mesh_id,
+            category=category,
+            source=f"synthetic:{category}/{mesh_id}?seed={self.seed}",
+        )
 
     @property
     def data_hash(self) -> str:

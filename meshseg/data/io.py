@@ -39,7 +39,9 @@ def _parse_off_header(lines: list[bytes], path: Path) -> tuple[int, int, int]:
     elif keyword.endswith(b"OFF"):
         raise MeshDataError(path, f"unsupported OFF variant {keyword.decode(errors='replace')!r} on line {lineno}")
     elif not keyword.lstrip(b"+-").isdigit():
-        raise MeshDataError(path, f"not an OFF file: line {lineno} starts with {keyword[:20].decode(errors='replace')!r}")
+        raise MeshDataError(
+            path, f"not an OFF file: line {lineno} starts with {keyword[:20].decode(errors='replace')!r}"
+        )
     if tokens[:1] == [b"BINARY"]:
         raise MeshDataError(path, "binary OFF is not supported")
     if not tokens:  # counts on the next record
@@ -50,10 +52,18 @@ def _parse_off_header(lines: list[bytes], path: Path) -> tuple[int, int, int]:
     try:
         nv, nf = int(tokens[0]), int(tokens[1])
     except (IndexError, ValueError):
-        raise MeshDataError(path, f"line {lineno}: expected 'n_vertices n_faces n_edges', got {b' '.join(tokens).decode(errors='replace')!r}") from None
+        raise MeshDataError(
+            path,
+            f"line {lineno}: expected 'n_vertices n_faces n_edges', got {b' '.join(tokens).decode(errors='replace')!r}",
+        ) from None
     if nv <= 0 or nf <= 0:
         raise MeshDataError(path, f"empty mesh: header declares {nv} vertices and {nf} faces")
     return nv, nf, lineno  # body starts on the line after `lineno` (1-based) = index lineno
+
+
+def _shown(tokens: list[bytes]) -> str:
+    """A bad record as it reads in the file, cut to 60 characters, for an error message."""
+    return b" ".join(tokens)[:60].decode(errors="replace")
 
 
 def read_off(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
@@ -105,7 +115,10 @@ def _read_off_slow(lines: list[bytes], body: int, nv: int, nf: int, path: Path) 
             try:
                 v[i] = [float(t) for t in tokens[:3]]
             except ValueError:
-                raise MeshDataError(path, f"line {lineno}: vertex record {i} is not 3 numbers: {b' '.join(tokens)[:60].decode(errors='replace')!r}") from None
+                raise MeshDataError(
+                    path,
+                    f"line {lineno}: vertex record {i} is not 3 numbers: {_shown(tokens)!r}",
+                ) from None
         for i in range(nf):
             lineno, tokens = next(records)
             count += 1
@@ -113,14 +126,21 @@ def _read_off_slow(lines: list[bytes], body: int, nv: int, nf: int, path: Path) 
                 n = int(tokens[0])
                 idx = [int(t) for t in tokens[1:4]]
             except ValueError:
-                raise MeshDataError(path, f"line {lineno}: face record {i} is not integers: {b' '.join(tokens)[:60].decode(errors='replace')!r}") from None
+                raise MeshDataError(
+                    path,
+                    f"line {lineno}: face record {i} is not integers: {_shown(tokens)!r}",
+                ) from None
             if n != 3:
-                raise MeshDataError(path, f"line {lineno}: face {i} has {n} vertices; only triangle meshes are supported")
+                raise MeshDataError(
+                    path, f"line {lineno}: face {i} has {n} vertices; only triangle meshes are supported"
+                )
             if len(idx) != 3:
                 raise short(lineno, f"face record {i}")
             f[i] = idx
     except StopIteration:
-        raise MeshDataError(path, f"truncated: header declares {nv} vertices and {nf} faces, file holds {count} records") from None
+        raise MeshDataError(
+            path, f"truncated: header declares {nv} vertices and {nf} faces, file holds {count} records"
+        ) from None
     return v, f
 
 
@@ -129,8 +149,8 @@ def write_off(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray) 
     path = Path(path)
     vertices, faces = np.asarray(vertices, np.float64), np.asarray(faces, np.int64)
     lines = [f"OFF\n{len(vertices)} {len(faces)} 0\n"]
-    lines += ["%.17g %.17g %.17g\n" % tuple(p) for p in vertices.tolist()]
-    lines += ["3 %d %d %d\n" % tuple(t) for t in faces.tolist()]
+    lines += [f"{x:.17g} {y:.17g} {z:.17g}\n" for x, y, z in vertices.tolist()]
+    lines += [f"3 {a} {b} {c}\n" for a, b, c in faces.tolist()]
     _atomic_write_text(path, "".join(lines))
 
 
@@ -176,11 +196,15 @@ def read_obj(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarra
                 raise MeshDataError(path, f"line {lineno}: vertex is not 3 numbers: {line.strip()[:60]!r}") from None
         elif key == "f":
             if len(tokens) != 4:
-                raise MeshDataError(path, f"line {lineno}: face has {len(tokens) - 1} vertices; only triangle meshes are supported")
+                raise MeshDataError(
+                    path, f"line {lineno}: face has {len(tokens) - 1} vertices; only triangle meshes are supported"
+                )
             try:
                 idx = [int(t.split("/", 1)[0]) for t in tokens[1:]]
             except ValueError:
-                raise MeshDataError(path, f"line {lineno}: face indices are not integers: {line.strip()[:60]!r}") from None
+                raise MeshDataError(
+                    path, f"line {lineno}: face indices are not integers: {line.strip()[:60]!r}"
+                ) from None
             # OBJ is 1-based; negative indices count back from the latest vertex.
             faces.append([i - 1 if i > 0 else len(verts) + i for i in idx])
             labels.append(groups.setdefault(current, len(groups)))
@@ -188,8 +212,7 @@ def read_obj(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarra
             current = " ".join(tokens[1:]) or "default"
     if not verts or not faces:
         raise MeshDataError(path, f"empty mesh: {len(verts)} vertices, {len(faces)} faces")
-    return (np.asarray(verts, np.float64), np.asarray(faces, np.int64),
-            np.asarray(labels, np.int64), tuple(groups))
+    return (np.asarray(verts, np.float64), np.asarray(faces, np.int64), np.asarray(labels, np.int64), tuple(groups))
 
 
 def read_psb_labels(path: str | os.PathLike, n_faces: int) -> tuple[np.ndarray, tuple[str, ...]]:
@@ -212,7 +235,9 @@ def read_psb_labels(path: str | os.PathLike, n_faces: int) -> tuple[np.ndarray, 
             raise MeshDataError(path, f"line {k + 2}: face indices of label {name!r} are not integers") from None
         bad = (idx < 0) | (idx >= n_faces)
         if bad.any():
-            raise MeshDataError(path, f"line {k + 2}: label {name!r} lists face {idx[bad][0] + 1}, outside 1..{n_faces}")
+            raise MeshDataError(
+                path, f"line {k + 2}: label {name!r} lists face {idx[bad][0] + 1}, outside 1..{n_faces}"
+            )
         label = names.setdefault(name, len(names))
         uniq, counts = np.unique(idx, return_counts=True)
         twice = np.concatenate([uniq[counts > 1], idx[labels[idx] >= 0]])

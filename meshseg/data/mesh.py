@@ -50,12 +50,16 @@ class Mesh:
         f = np.ascontiguousarray(f, dtype=np.int64)
         bad = ~np.isfinite(v).all(axis=1)
         if bad.any():
-            raise MeshDataError(src, f"{bad.sum()} vertices have NaN/inf coordinates (first: vertex {np.flatnonzero(bad)[0]})")
+            raise MeshDataError(
+                src, f"{bad.sum()} vertices have NaN/inf coordinates (first: vertex {np.flatnonzero(bad)[0]})"
+            )
         out = (f < 0) | (f >= len(v))
         if out.any():
             row = np.flatnonzero(out.any(axis=1))[0]
             raise MeshDataError(
-                src, f"face {row} has vertex index {f[row][out[row]][0]} outside 0..{len(v) - 1} ({out.any(axis=1).sum()} such faces)"
+                src,
+                f"face {row} has vertex index {f[row][out[row]][0]} outside 0..{len(v) - 1} "
+                f"({out.any(axis=1).sum()} such faces)",
             )
         object.__setattr__(self, "vertices", v)
         object.__setattr__(self, "faces", f)
@@ -70,8 +74,9 @@ class Mesh:
             unknown = (lab < 0) | (lab >= len(self.label_names))
             if unknown.any():
                 raise MeshDataError(
-                    src, f"unknown label id {lab[unknown][0]} on face {np.flatnonzero(unknown)[0]}: "
-                    f"the vocabulary has {len(self.label_names)} labels {list(self.label_names)}"
+                    src,
+                    f"unknown label id {lab[unknown][0]} on face {np.flatnonzero(unknown)[0]}: "
+                    f"the vocabulary has {len(self.label_names)} labels {list(self.label_names)}",
                 )
             object.__setattr__(self, "labels", lab)
 

@@ -70,7 +70,9 @@ def _parse_split_file(path: str, mtime_ns: int) -> dict[str, tuple[tuple[str, ..
             while i < len(lines) and lines[i] and not re.match(r"(Category|Training split|Test split)\b", lines[i]):
                 i += 1
             if i - start != n:
-                raise MeshDataError(path, f"block {name}: {part.lower()} list declares {n} shapes but holds {i - start}")
+                raise MeshDataError(
+                    path, f"block {name}: {part.lower()} list declares {n} shapes but holds {i - start}"
+                )
             parts.append(tuple(lines[start:i]))
         blocks[name] = (parts[0], parts[1])
     return blocks
@@ -85,18 +87,24 @@ def fixed(dataset: MeshDataset, category: str, split_file: str | os.PathLike) ->
     key = normalise_name(dataset.split_prefix + category)
     match = [name for name in blocks if normalise_name(name) == key]
     if not match:
-        raise MeshDataError(split_file, f"no block for {dataset.name} category {category!r} (looked for {dataset.split_prefix}{category})")
+        raise MeshDataError(
+            split_file,
+            f"no block for {dataset.name} category {category!r} (looked for {dataset.split_prefix}{category})",
+        )
     train, test = ([re.sub(r"^model", "", s) for s in ids] for ids in blocks[match[0]])
     have = set(dataset.mesh_ids(category))
     missing = sorted(set(train + test) - have)
     if missing:
-        raise MeshDataError(split_file, f"block {match[0]} names {len(missing)} meshes the dataset lacks: {missing[:8]}")
+        raise MeshDataError(
+            split_file, f"block {match[0]} names {len(missing)} meshes the dataset lacks: {missing[:8]}"
+        )
     fold = Fold(0, tuple(sort_ids(train)), tuple(sort_ids(test)))
     return [fold]
 
 
-def make_folds(dataset: MeshDataset, category: str, protocol: str, k: int = 5,
-               split_file: str | os.PathLike | None = None) -> list[Fold]:
+def make_folds(
+    dataset: MeshDataset, category: str, protocol: str, k: int = 5, split_file: str | os.PathLike | None = None
+) -> list[Fold]:
     """Folds of `category` under `protocol`, checked: train and test disjoint, together the category."""
     ids = dataset.mesh_ids(category)
     if protocol == "loo":
@@ -115,7 +123,9 @@ def make_folds(dataset: MeshDataset, category: str, protocol: str, k: int = 5,
             raise ValueError(f"{category} fold {fold.index}: meshes {sorted(overlap)} are in train and test")
         uncovered = set(ids) - set(fold.train) - set(fold.test)
         if uncovered:
-            raise ValueError(f"{category} fold {fold.index}: meshes {sort_ids(uncovered)} are in neither train nor test")
+            raise ValueError(
+                f"{category} fold {fold.index}: meshes {sort_ids(uncovered)} are in neither train nor test"
+            )
     return folds
 
 

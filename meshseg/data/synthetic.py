@@ -16,8 +16,9 @@ the requested face-count range, only its tessellation does.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 from scipy import sparse
@@ -145,8 +146,16 @@ def _build_table(rng: np.random.Generator) -> tuple[list[_Part], dict]:
     inset = leg_r + min(rng.uniform(0.02, 0.15), (depth - 4 * leg_r - 0.2) / 2)
     leg_style = ("square", "cylinder", "splayed")[rng.integers(3)]
     splay = float(np.deg2rad(rng.uniform(3.0, 12.0))) if leg_style == "splayed" else 0.0
-    params = dict(width=width, depth=depth, thickness=thick, height=height, leg_radius=leg_r,
-                  inset=inset, leg_style=leg_style, splay=splay)
+    params = dict(
+        width=width,
+        depth=depth,
+        thickness=thick,
+        height=height,
+        leg_radius=leg_r,
+        inset=inset,
+        leg_style=leg_style,
+        splay=splay,
+    )
 
     top_c = np.array([0.0, 0.0, height - thick / 2])
     top_half = np.array([width / 2, depth / 2, thick / 2])
@@ -168,7 +177,9 @@ def _build_table(rng: np.random.Generator) -> tuple[list[_Part], dict]:
             elif leg_style == "cylinder":
                 parts.append(_part(1, lambda p, c=c: sd_cylinder_z(p, c, leg_r, attach_z / 2), c - half, c + half))
             else:
-                parts.append(_part(1, lambda p, c=c: sd_round_box(p, c, half, 0.2 * leg_r), c - half, c + half))
+                parts.append(
+                    _part(1, lambda p, c=c, half=half: sd_round_box(p, c, half, 0.2 * leg_r), c - half, c + half)
+                )
     return parts, params
 
 
@@ -188,8 +199,16 @@ def _build_cup(rng: np.random.Generator) -> tuple[list[_Part], dict]:
     handle_z = rng.uniform(wall + reach, height - wall / 2 - reach)
     slope = (r_top - r_bottom) / height
     handle_x = r_bottom + slope * handle_z  # on the wall's mid-surface
-    params = dict(r_bottom=r_bottom, r_top=r_top, height=height, wall=wall, handle_major=major,
-                  handle_minor=tube, handle_stretch=stretch, handle_z=handle_z)
+    params = dict(
+        r_bottom=r_bottom,
+        r_top=r_top,
+        height=height,
+        wall=wall,
+        handle_major=major,
+        handle_minor=tube,
+        handle_stretch=stretch,
+        handle_z=handle_z,
+    )
 
     handle_c = np.array([handle_x, 0.0, handle_z])
 
@@ -200,8 +219,12 @@ def _build_cup(rng: np.random.Generator) -> tuple[list[_Part], dict]:
 
     r_max = r_top + wall / 2
     parts = [
-        _part(0, lambda p: sd_open_shell_z(p, r_bottom, r_top, height, wall),
-              [-r_max, -r_max, -wall / 2], [r_max, r_max, height + wall / 2]),
+        _part(
+            0,
+            lambda p: sd_open_shell_z(p, r_bottom, r_top, height, wall),
+            [-r_max, -r_max, -wall / 2],
+            [r_max, r_max, height + wall / 2],
+        ),
         _part(1, handle, [r_bottom - wall, -tube, handle_z - reach], [handle_x + major + tube, tube, handle_z + reach]),
     ]
     return parts, params
@@ -219,8 +242,15 @@ def _build_figure(rng: np.random.Generator) -> tuple[list[_Part], dict]:
     hand_r = arm_r * rng.uniform(1.15, 1.4)  # ball hands: a bulge ending each arm
     upper_arm, fore_arm = rng.uniform(0.3, 0.42), rng.uniform(0.26, 0.38)
     thigh, shin = rng.uniform(0.38, 0.52), rng.uniform(0.36, 0.5)
-    params = dict(torso=(tw, td, th), head_radius=head_r, arm_radius=arm_r, leg_radius=leg_r,
-                  arm_lengths=(upper_arm, fore_arm), leg_lengths=(thigh, shin), pose={})
+    params = dict(
+        torso=(tw, td, th),
+        head_radius=head_r,
+        arm_radius=arm_r,
+        leg_radius=leg_r,
+        arm_lengths=(upper_arm, fore_arm),
+        leg_lengths=(thigh, shin),
+        pose={},
+    )
 
     torso_c = np.zeros(3)
     head_radii = head_r * np.array([1.0, rng.uniform(0.85, 1.0), rng.uniform(1.0, 1.2)])
@@ -235,8 +265,11 @@ def _build_figure(rng: np.random.Generator) -> tuple[list[_Part], dict]:
         shoulder = np.array([side * 0.75 * tw, 0.0, 0.55 * th])
         elbow = shoulder + upper_arm * _limb_dir(side, out, swing)
         hand = elbow + fore_arm * _limb_dir(side, out, swing + bend)  # elbows bend forward
-        parts += [_capsule_part(2, shoulder, elbow, arm_r), _capsule_part(2, elbow, hand, arm_r),
-                  _part(2, lambda p, c=hand: sd_sphere(p, c, hand_r), hand - hand_r, hand + hand_r)]
+        parts += [
+            _capsule_part(2, shoulder, elbow, arm_r),
+            _capsule_part(2, elbow, hand, arm_r),
+            _part(2, lambda p, c=hand: sd_sphere(p, c, hand_r), hand - hand_r, hand + hand_r),
+        ]
         params["pose"][f"arm{side:+.0f}"] = np.rad2deg([out, swing, bend])
     for side in (-1.0, 1.0):
         out, swing, bend = np.deg2rad([rng.uniform(5, 22), rng.uniform(-35, 35), rng.uniform(0, 50)])
@@ -280,11 +313,13 @@ class SyntheticMesh:
 def _random_rotation(rng: np.random.Generator) -> np.ndarray:
     # A normalised 4D Gaussian is a uniform unit quaternion, i.e. uniform on SO(3).
     w, x, y, z = (q := rng.normal(size=4)) / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def _part_distances(parts: list[_Part], p: np.ndarray) -> np.ndarray:
@@ -300,7 +335,9 @@ def _clean(verts: np.ndarray, faces: np.ndarray, tol: float) -> tuple[np.ndarray
     verts, faces = verts[first], inverse.reshape(-1)[faces]
     a, b, c = faces.T
     faces = faces[(a != b) & (b != c) & (a != c)]
-    area = 0.5 * np.linalg.norm(np.cross(verts[faces[:, 1]] - verts[faces[:, 0]], verts[faces[:, 2]] - verts[faces[:, 0]]), axis=1)
+    area = 0.5 * np.linalg.norm(
+        np.cross(verts[faces[:, 1]] - verts[faces[:, 0]], verts[faces[:, 2]] - verts[faces[:, 0]]), axis=1
+    )
     faces, area = faces[area > tol * tol], area[area > tol * tol]
     # Components over the vertex graph; keep the one carrying the most faces.
     n = len(verts)
@@ -396,8 +433,9 @@ def sample(category: str, index: int, seed: int = 0, min_faces: int = 1500, max_
     )
 
 
-def generate(category: str, index: int, seed: int = 0, min_faces: int = 1500, max_faces: int = 6000
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def generate(
+    category: str, index: int, seed: int = 0, min_faces: int = 1500, max_faces: int = 6000
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mesh `index` of `category` for dataset seed `seed`.
 
     Returns ``(V, F, labels)``: float64 (n, 3) vertices, int64 (m, 3) outward-wound faces

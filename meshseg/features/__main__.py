@@ -1,7 +1,7 @@
 """Compute and cache a feature set.
 
-    python -m meshseg.features dataset=psb dataset.root=PATH features=f800 [category=Airplane] [workers=2]
-    python -m meshseg.features mesh=FILE.off out=FILE.npy features=f800
+python -m meshseg.features dataset=psb dataset.root=PATH features=f800 [category=Airplane] [workers=2]
+python -m meshseg.features mesh=FILE.off out=FILE.npy features=f800
 """
 
 from __future__ import annotations

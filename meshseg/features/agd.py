@@ -29,8 +29,21 @@ from meshseg.features.geometry import (
 from meshseg.features.registry import register
 
 AGD_COLUMNS = [
-    "AGD E[g]", "AGD E[g^2]", "AGD E[g^4]", "AGD E[g^8]", "AGD E[g^.5]", "AGD E[g^.25]", "AGD var", "AGD skew",
-    "AGD kurt", "AGD g@10%", "AGD g@20%", "AGD g@30%", "AGD g@40%", "AGD g@50%", "AGD unused(0)",
+    "AGD E[g]",
+    "AGD E[g^2]",
+    "AGD E[g^4]",
+    "AGD E[g^8]",
+    "AGD E[g^.5]",
+    "AGD E[g^.25]",
+    "AGD var",
+    "AGD skew",
+    "AGD kurt",
+    "AGD g@10%",
+    "AGD g@20%",
+    "AGD g@30%",
+    "AGD g@40%",
+    "AGD g@50%",
+    "AGD unused(0)",
 ]
 _QUANTILES = (0.1, 0.2, 0.3, 0.4, 0.5)
 _EPS = 1e-30  # the 2010 code's guard in skewness and kurtosis
@@ -110,7 +123,9 @@ def sampled_geodesics(V: np.ndarray, F: np.ndarray, n_samples: int) -> SampledGe
     owner = np.argmin(dist, axis=0)  # every face reaches the sample of its own component
     owner_dist = dist[owner, np.arange(len(F))]
     cell_area = np.bincount(owner, weights=area, minlength=len(samples))
-    geo = SampledGeodesics(Vn, unit, C, per_face_normals(Vn, F), area, graph, component, samples, dist, owner, owner_dist, cell_area)
+    geo = SampledGeodesics(
+        Vn, unit, C, per_face_normals(Vn, F), area, graph, component, samples, dist, owner, owner_dist, cell_area
+    )
     _cache.clear()
     _cache[key] = geo
     return geo

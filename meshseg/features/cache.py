@@ -16,7 +16,7 @@ import logging
 import os
 import tempfile
 import zipfile
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +33,7 @@ def code_version(group: Group) -> str:
     return _code_version(group.fn.__module__, group.version)
 
 
-@lru_cache(maxsize=None)
+@cache
 def _code_version(module: str, version: str) -> str:
     h = hashlib.sha256(version.encode())
     for name in dependencies(module):
@@ -74,8 +74,11 @@ def _is_module(name: str) -> bool:
 
 
 def cache_key(mesh_hash: str, group: Group, params: dict) -> str:
-    blob = json.dumps({"mesh": mesh_hash, "group": group.name, "params": params, "code": code_version(group)},
-                      sort_keys=True, default=repr)
+    blob = json.dumps(
+        {"mesh": mesh_hash, "group": group.name, "params": params, "code": code_version(group)},
+        sort_keys=True,
+        default=repr,
+    )
     return hashlib.sha256(blob.encode()).hexdigest()[:32]
 
 

@@ -81,7 +81,9 @@ def target_curvature(V: np.ndarray, F: np.ndarray, labels: np.ndarray, n_comp: i
     if total == "sphere":
         total = np.full(n_comp, 4 * np.pi)
     else:
-        total = 2 * np.pi * np.bincount(labels, minlength=n_comp) - np.pi * np.bincount(labels[F[:, 0]], minlength=n_comp)
+        total = 2 * np.pi * np.bincount(labels, minlength=n_comp) - np.pi * np.bincount(
+            labels[F[:, 0]], minlength=n_comp
+        )
     a = vertex_areas(V, F)
     area = np.bincount(labels, a, minlength=n_comp)
     share = np.divide(a, area[labels], out=np.full(n, 0.0), where=area[labels] > 0)
@@ -163,9 +165,17 @@ def taubin_smooth(V: np.ndarray, mean_nb: sp.spmatrix, lam: float, mu: float, pa
     return V
 
 
-def smoothed_conformal_factors(V: np.ndarray, F: np.ndarray, iterations: int = 5, taubin_lambda: float = 0.5,
-                               taubin_mu: float = -0.53, taubin_pairs: int = 1, taubin_weights: str = "cotan",
-                               laplacian_mesh: str = "smoothed", target_total: str = "mesh") -> np.ndarray:
+def smoothed_conformal_factors(
+    V: np.ndarray,
+    F: np.ndarray,
+    iterations: int = 5,
+    taubin_lambda: float = 0.5,
+    taubin_mu: float = -0.53,
+    taubin_pairs: int = 1,
+    taubin_weights: str = "cotan",
+    laplacian_mesh: str = "smoothed",
+    target_total: str = "mesh",
+) -> np.ndarray:
     """Per-vertex Φ^s_i, i = 1..iterations, as an (iterations, n) array: L Φ^s_i = K^{sT}_i − K^T, with
     M^s_i = M^s_{i−1} after `taubin_pairs` λ|μ steps (neighbour weights `taubin_weights` of the
     original mesh), L the Laplacian of M^s_i (`laplacian_mesh="smoothed"`) or of the original mesh
@@ -207,9 +217,17 @@ def cf0(V: np.ndarray, F: np.ndarray) -> np.ndarray:
 
 
 @register("cf_smooth", 5, columns=[f"cf{i}" for i in range(1, 6)])
-def cf_smooth(V: np.ndarray, F: np.ndarray, *, taubin_lambda: float = 0.5, taubin_mu: float = -0.53,
-              taubin_pairs: int = 1, taubin_weights: str = "cotan", laplacian_mesh: str = "smoothed",
-              target_total: str = "mesh") -> np.ndarray:
+def cf_smooth(
+    V: np.ndarray,
+    F: np.ndarray,
+    *,
+    taubin_lambda: float = 0.5,
+    taubin_mu: float = -0.53,
+    taubin_pairs: int = 1,
+    taubin_weights: str = "cotan",
+    laplacian_mesh: str = "smoothed",
+    target_total: str = "mesh",
+) -> np.ndarray:
     """CF1..CF5: the paper's smoothed conformal factors (§3.1), one column per smoothing iteration.
 
     M^s_i is the mesh after i Taubin iterations (λ = `taubin_lambda`, μ = `taubin_mu`; one
@@ -229,6 +247,7 @@ def cf_smooth(V: np.ndarray, F: np.ndarray, *, taubin_lambda: float = 0.5, taubi
     per-face mapping and (lack of) normalisation as for cf0.
     """
     V, F = _compact(V, F)
-    phi = smoothed_conformal_factors(V, F, 5, taubin_lambda, taubin_mu, taubin_pairs, taubin_weights,
-                                     laplacian_mesh, target_total)
+    phi = smoothed_conformal_factors(
+        V, F, 5, taubin_lambda, taubin_mu, taubin_pairs, taubin_weights, laplacian_mesh, target_total
+    )
     return vertex_to_face(phi.T, F)

@@ -27,7 +27,9 @@ from meshseg.features.geometry import (  # noqa: F401
 from meshseg.features.registry import register
 
 CURVATURE_VALUES = ("k1", "k2", "k1-k2", "K1", "K2", "K1-K2", "H", "K")
-CURVATURE_COLUMNS = [f"CUR s{s} {v}" for s in range(4) for v in CURVATURE_VALUES + tuple(f"|{v}|" for v in CURVATURE_VALUES)]
+CURVATURE_COLUMNS = [
+    f"CUR s{s} {v}" for s in range(4) for v in CURVATURE_VALUES + tuple(f"|{v}|" for v in CURVATURE_VALUES)
+]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -144,7 +146,6 @@ def geodesic_balls(
 def _nearest(tree, c, rows, k, reach):
     """(B, K) face ids of the k nearest centres within `reach` of each row's centre, nearest
     first and the face itself in column 0, padded with nf; K is the largest count found."""
-    nf = len(c)
     d, J = tree.query(c[rows], k=k, distance_upper_bound=reach)
     J = J.reshape(len(rows), k)
     width = int(np.isfinite(d.reshape(len(rows), k)).sum(axis=1).max())
@@ -269,7 +270,9 @@ def principal_curvatures(
     frame = np.stack([t, s, n], axis=2)  # (F, 3, 3): columns t, s, n
     nbr, nbr_len = dual_edges(V, F)
     out = np.zeros((len(F), len(radii), 2))
-    for rows, J, masks in geodesic_balls(c, nbr, nbr_len, radii, max_neighbors=max_neighbors, min_faces=min_faces, normals=n):
+    for rows, J, masks in geodesic_balls(
+        c, nbr, nbr_len, radii, max_neighbors=max_neighbors, min_faces=min_faces, normals=n
+    ):
         Jn = J[:, 1:]
         B, k = Jn.shape
         local = np.matmul(c[rows, None, :] - c[Jn], frame[rows])  # (B, k, 3): x, y, z
@@ -281,7 +284,11 @@ def principal_curvatures(
         u, v = -nloc[..., 0] / nz, -nloc[..., 1] / nz
         # the 15 weighted sums that make the 3x3 normal equations of the stacked rows
         Q = np.empty((B, k, 15))
-        xx, xy, yy = np.multiply(x, x, out=Q[..., 5]), np.multiply(x, y, out=Q[..., 6]), np.multiply(y, y, out=Q[..., 7])
+        xx, xy, yy = (
+            np.multiply(x, x, out=Q[..., 5]),
+            np.multiply(x, y, out=Q[..., 6]),
+            np.multiply(y, y, out=Q[..., 7]),
+        )
         np.multiply(xx, xx, out=Q[..., 0])
         np.multiply(xx, xy, out=Q[..., 1])
         np.multiply(xx, yy, out=Q[..., 2])
@@ -379,7 +386,9 @@ def curvature(
         raise ConfigError(f"curvature: needs 4 radii (the group has 4 x 16 columns), got {list(radii)}")
     Vn = kalogerakis_normalize(V, F)
     with threadpool_limits(limits=1, user_api="blas"):  # many small BLAS calls: threads only add sync overhead
-        k = principal_curvatures(Vn, F, radii, max_neighbors=max_neighbors, min_faces=min_faces, smoothed_normals=smoothed_normals)
+        k = principal_curvatures(
+            Vn, F, radii, max_neighbors=max_neighbors, min_faces=min_faces, smoothed_normals=smoothed_normals
+        )
     nbr, _ = dual_edges(Vn, F)
     signed = np.arange(16) < 8
     cols = []

@@ -30,12 +30,16 @@ from meshseg.features.registry import register
 _CACHE: dict = {}  # one entry: hash of (V, F, n_eigen) -> (eigenvalues, eigenvectors, faces)
 
 
-def laplace_beltrami_eigenpairs(V: np.ndarray, F: np.ndarray, n_eigen: int = 100) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+def laplace_beltrami_eigenpairs(
+    V: np.ndarray, F: np.ndarray, n_eigen: int = 100
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """The smallest eigenpairs of L φ = λ M φ, ascending: (λ (k,), φ (n, k), faces (F, 3) re-indexed
     into the n referenced vertices, number of components). Cached for the last mesh asked."""
     V = np.ascontiguousarray(V, np.float64)
     F = np.ascontiguousarray(F, np.int64)
-    key = hashlib.blake2b(V.tobytes() + F.tobytes() + str((V.shape, F.shape, n_eigen)).encode(), digest_size=16).digest()
+    key = hashlib.blake2b(
+        V.tobytes() + F.tobytes() + str((V.shape, F.shape, n_eigen)).encode(), digest_size=16
+    ).digest()
     if key not in _CACHE:
         _CACHE.clear()
         _CACHE[key] = _eigenpairs(V, F, n_eigen)
@@ -104,8 +108,16 @@ def hks(V: np.ndarray, F: np.ndarray, *, n_eigen: int = 100) -> np.ndarray:
 
 
 @register("sihks", 100, columns=[f"sihks{i}" for i in range(100)])
-def sihks(V: np.ndarray, F: np.ndarray, *, n_eigen: int = 100, alpha: float = 2.0, tau_step: float = 0.5,
-          tau_start: float = -24.0, n_tau: int = 201) -> np.ndarray:
+def sihks(
+    V: np.ndarray,
+    F: np.ndarray,
+    *,
+    n_eigen: int = 100,
+    alpha: float = 2.0,
+    tau_step: float = 0.5,
+    tau_start: float = -24.0,
+    n_tau: int = 201,
+) -> np.ndarray:
     """Scale-invariant HKS (Bronstein & Kokkinos 2010): the first 100 |DFT| frequencies of
     d/dτ log h(α^τ), one column per frequency, 0 (the DC term) first.
 

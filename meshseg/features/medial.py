@@ -42,8 +42,15 @@ def medial_rays(setup: RaySetup, sdf_rays_per_cone: int, rays_per_ring: int) -> 
     return np.concatenate(cols, axis=1)
 
 
-def medial_distances(V: np.ndarray, F: np.ndarray, *, sdf_rays_per_cone: int = 8, rays_per_ring: int = 8,
-                     normals: str = "vertex", frame: str = "principal") -> np.ndarray:
+def medial_distances(
+    V: np.ndarray,
+    F: np.ndarray,
+    *,
+    sdf_rays_per_cone: int = 8,
+    rays_per_ring: int = 8,
+    normals: str = "vertex",
+    frame: str = "principal",
+) -> np.ndarray:
     """Raw distances (F, 1 + 3·rays_per_ring) in the mesh's units, before the per-mesh
     normalisation: see `medial_rays`."""
     return medial_rays(RaySetup(V, F, normals, frame), sdf_rays_per_cone, rays_per_ring)
@@ -54,8 +61,16 @@ def _columns() -> list[str]:
 
 
 @register("dms", dim=24, columns=_columns())
-def dms(V: np.ndarray, F: np.ndarray, *, sdf_rays_per_cone: int = 8, rays_per_ring: int = 8, normals: str = "vertex",
-        frame: str = "principal", outlier_quantile: float = 0.95) -> np.ndarray:
+def dms(
+    V: np.ndarray,
+    F: np.ndarray,
+    *,
+    sdf_rays_per_cone: int = 8,
+    rays_per_ring: int = 8,
+    normals: str = "vertex",
+    frame: str = "principal",
+    outlier_quantile: float = 0.95,
+) -> np.ndarray:
     """Distance from the medial surface, 24 columns = 4 transforms × 6 statistics.
 
     Per face the 1 + 3·`rays_per_ring` distances of `medial_rays` (the face-to-medial-point

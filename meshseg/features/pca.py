@@ -13,7 +13,20 @@ from meshseg.features.curvature import clip_outliers, dual_edges, geodesic_balls
 from meshseg.features.geometry import face_areas, face_centers, face_dual_graph, farthest_point_sampling
 from meshseg.features.registry import register
 
-PCA_VALUES = ("l0", "l1", "l2", "l0+l1", "l0+l2", "l1+l2", "l0/l1", "l0/l2", "l1/l2", "l0/l1+l0/l2", "l0/l1+l1/l2", "l0/l2+l1/l2")
+PCA_VALUES = (
+    "l0",
+    "l1",
+    "l2",
+    "l0+l1",
+    "l0+l2",
+    "l1+l2",
+    "l0/l1",
+    "l0/l2",
+    "l1/l2",
+    "l0/l1+l0/l2",
+    "l0/l1+l1/l2",
+    "l0/l2+l1/l2",
+)
 PCA_COLUMNS = [f"PCA s{s} {v}" for s in range(4) for v in PCA_VALUES]
 _UPPER = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
 
@@ -35,7 +48,12 @@ def covariance_eigenvalues(S: np.ndarray, total_area: float) -> np.ndarray:
     for q, (i, j) in enumerate(_UPPER):
         S2[..., i, j] = S2[..., j, i] = S[..., 4 + q]
     m = s1 / total_area
-    C = S2 - s1[..., :, None] * m[..., None, :] - m[..., :, None] * s1[..., None, :] + s0[..., None, None] * m[..., :, None] * m[..., None, :]
+    C = (
+        S2
+        - s1[..., :, None] * m[..., None, :]
+        - m[..., :, None] * s1[..., None, :]
+        + s0[..., None, None] * m[..., :, None] * m[..., None, :]
+    )
     return np.sqrt(np.maximum(np.linalg.eigvalsh(C / total_area), 0.0))
 
 
@@ -88,7 +106,9 @@ def site_ball_moments(
 def _site_sums(graph, nbr, c, G, sites, radius, h, neighbors, batch):
     nf = len(c)
     while True:  # a part that no site reaches (a small component FPS skipped) gets its own site
-        d1, _, nearest = dijkstra(graph, directed=False, indices=sites, limit=radius, min_only=True, return_predecessors=True)
+        d1, _, nearest = dijkstra(
+            graph, directed=False, indices=sites, limit=radius, min_only=True, return_predecessors=True
+        )
         lost = np.flatnonzero(~np.isfinite(d1))
         if len(lost) == 0:
             break
@@ -151,12 +171,16 @@ def neighbourhood_moments(
     if small:
         c = face_centers(V, F)
         nbr, nbr_len = dual_edges(V, F)
-        for rows, J, masks in geodesic_balls(c, nbr, nbr_len, [radii[i] for i in small], max_neighbors=max_neighbors, min_faces=min_faces):
+        for rows, J, masks in geodesic_balls(
+            c, nbr, nbr_len, [radii[i] for i in small], max_neighbors=max_neighbors, min_faces=min_faces
+        ):
             GJ = G[J]
             for i, mask in zip(small, masks):
                 S[rows, i] = np.einsum("bk,bkq->bq", mask.astype(np.float64), GJ)
     if large:
-        S[:, large] = site_ball_moments(V, F, G, [radii[i] for i in large], spacing=site_spacing, neighbors=site_neighbors)
+        S[:, large] = site_ball_moments(
+            V, F, G, [radii[i] for i in large], spacing=site_spacing, neighbors=site_neighbors
+        )
     return S
 
 
@@ -194,7 +218,17 @@ def pca(
         return np.zeros((len(F), 12 * len(radii)), np.float32)
     radii = [float(r) for r in radii]
     with threadpool_limits(limits=1, user_api="blas"):  # many small BLAS calls: threads only add sync overhead
-        S = neighbourhood_moments(Vn, F, area_moments(c, a), radii, max_neighbors=max_neighbors, min_faces=min_faces, site_radius=site_radius, site_spacing=site_spacing, site_neighbors=site_neighbors)
+        S = neighbourhood_moments(
+            Vn,
+            F,
+            area_moments(c, a),
+            radii,
+            max_neighbors=max_neighbors,
+            min_faces=min_faces,
+            site_radius=site_radius,
+            site_spacing=site_spacing,
+            site_neighbors=site_neighbors,
+        )
     X = pca_values(covariance_eigenvalues(S, total)).reshape(len(F), -1)
     if clip:
         X = clip_outliers(X, np.zeros(X.shape[1], bool))

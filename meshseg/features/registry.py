@@ -8,8 +8,8 @@ part of every cache key — bump it when a group's values change.
 from __future__ import annotations
 
 import inspect
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 
@@ -30,7 +30,9 @@ class Group:
         overrides = dict(overrides or {})
         unknown = sorted(set(overrides) - set(self.defaults))
         if unknown:
-            raise ConfigError(f"feature group {self.name!r} has no parameters {unknown}; it has {sorted(self.defaults)}")
+            raise ConfigError(
+                f"feature group {self.name!r} has no parameters {unknown}; it has {sorted(self.defaults)}"
+            )
         return {**self.defaults, **overrides}
 
     def __call__(self, V: np.ndarray, F: np.ndarray, **params) -> np.ndarray:
@@ -50,7 +52,9 @@ def register(name: str, dim: int, version: str = "1", columns: list[str] | None 
         if name in GROUPS:
             raise ValueError(f"feature group {name!r} registered twice")
         sig = inspect.signature(fn)
-        defaults = {k: p.default for k, p in list(sig.parameters.items())[2:] if p.default is not inspect.Parameter.empty}
+        defaults = {
+            k: p.default for k, p in list(sig.parameters.items())[2:] if p.default is not inspect.Parameter.empty
+        }
         cols = tuple(columns) if columns is not None else tuple(f"{name}[{i}]" for i in range(dim))
         if len(cols) != dim:
             raise ValueError(f"feature group {name!r}: {len(cols)} column names for {dim} columns")

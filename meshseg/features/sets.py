@@ -53,7 +53,7 @@ class FeatureSet:
     params: dict = field(default_factory=dict)  # {group: {param: value}} overrides
 
     @classmethod
-    def from_config(cls, cfg) -> "FeatureSet":
+    def from_config(cls, cfg) -> FeatureSet:
         """From a `conf/features/*.yaml` node: name, groups (entries), params."""
         params = {k: dict(v) for k, v in dict(cfg.get("params") or {}).items()}
         entries = tuple(parse_entry(e) for e in cfg.groups)
@@ -84,10 +84,17 @@ class FeatureSet:
     def cached(self, mesh_hash: str, cache: FeatureCache) -> bool:
         """Whether every group of this set is already in `cache` for that mesh."""
         return cache.root is not None and all(
-            cache.path(mesh_hash, get_group(g), self.group_params(g)).exists() for g in {e.group for e in self.entries})
+            cache.path(mesh_hash, get_group(g), self.group_params(g)).exists() for g in {e.group for e in self.entries}
+        )
 
-    def compute(self, V: np.ndarray, F: np.ndarray, mesh_hash: str, cache: FeatureCache | None = None,
-                timings: dict | None = None) -> np.ndarray:
+    def compute(
+        self,
+        V: np.ndarray,
+        F: np.ndarray,
+        mesh_hash: str,
+        cache: FeatureCache | None = None,
+        timings: dict | None = None,
+    ) -> np.ndarray:
         """The (F, dim) float32 matrix; each group computed once (or read from the cache).
         `timings`, if given, receives seconds per group."""
         cache = cache or FeatureCache(None)
@@ -98,17 +105,22 @@ class FeatureSet:
                 blocks[e.group] = cache.get(V, F, mesh_hash, get_group(e.group), self.params.get(e.group, {}))
                 if timings is not None:
                     timings[e.group] = time.perf_counter() - t0
-        return np.ascontiguousarray(np.concatenate([blocks[e.group][:, e.start : e.stop] for e in self.entries], axis=1))
+        return np.ascontiguousarray(
+            np.concatenate([blocks[e.group][:, e.start : e.stop] for e in self.entries], axis=1)
+        )
 
 
-def check_finite(X: np.ndarray, fs: "FeatureSet", source: str) -> None:
+def check_finite(X: np.ndarray, fs: FeatureSet, source: str) -> None:
     """One rule for every command: a mesh whose features are not all finite is refused, naming the
     mesh and the first columns at fault, never written or trained on."""
     if not np.isfinite(X).all():
         bad = [fs.columns[j] for j in np.flatnonzero(~np.isfinite(X).all(axis=0))]
         rows = int((~np.isfinite(X).all(axis=1)).sum())
-        raise MeshDataError(source, f"{rows} faces have non-finite {fs.name} features, in columns {bad[:5]}"
-                                    f"{' …' if len(bad) > 5 else ''} (degenerate faces or unused vertices?)")
+        raise MeshDataError(
+            source,
+            f"{rows} faces have non-finite {fs.name} features, in columns {bad[:5]}"
+            f"{' …' if len(bad) > 5 else ''} (degenerate faces or unused vertices?)",
+        )
 
 
 def _one(dataset: MeshDataset, category: str, mesh_id: str, fs: FeatureSet, cache_root: str | None):
@@ -119,8 +131,14 @@ def _one(dataset: MeshDataset, category: str, mesh_id: str, fs: FeatureSet, cach
     return category, mesh_id, mesh.n_faces, time.perf_counter() - t0
 
 
-def compute_dataset(dataset: MeshDataset, fs: FeatureSet, cache_root: str | None, jobs: list[tuple[str, str]],
-                    workers: int = 2, out=None) -> tuple[int, int, float]:
+def compute_dataset(
+    dataset: MeshDataset,
+    fs: FeatureSet,
+    cache_root: str | None,
+    jobs: list[tuple[str, str]],
+    workers: int = 2,
+    out=None,
+) -> tuple[int, int, float]:
     """Features of the meshes `jobs` ((category, mesh id) pairs), `workers` meshes at a time, into the
     cache; one line per mesh, then the total (to `out`, default stdout)."""
     from joblib import Parallel, delayed
@@ -130,12 +148,15 @@ def compute_dataset(dataset: MeshDataset, fs: FeatureSet, cache_root: str | None
     t0 = time.perf_counter()
     n_faces = 0
     results = Parallel(n_jobs=workers, return_as="generator_unordered")(
-        delayed(_one)(dataset, c, m, fs, cache_root) for c, m in jobs)
+        delayed(_one)(dataset, c, m, fs, cache_root) for c, m in jobs
+    )
     with tqdm(total=len(jobs), unit="mesh", file=sys.stderr, disable=None) as bar:
         for category, mesh_id, faces, seconds in results:
             n_faces += faces
             bar.update()
-            bar.write(f"{category}/{mesh_id}: {faces} faces in {seconds:.1f} s ({faces / seconds:.0f} faces/s)", file=out)
+            bar.write(
+                f"{category}/{mesh_id}: {faces} faces in {seconds:.1f} s ({faces / seconds:.0f} faces/s)", file=out
+            )
     elapsed = time.perf_counter() - t0
     print(f"features: {len(jobs)} meshes, {n_faces} faces, {n_faces / elapsed:.0f} faces/s", file=out)
     return len(jobs), n_faces, elapsed

@@ -39,7 +39,9 @@ from meshseg.features.geometry import farthest_point_sampling
 from meshseg.features.registry import register
 
 BINNINGS = ((5, 4), (5, 6), (5, 8), (10, 4), (10, 6), (10, 8))
-SC_COLUMNS = [f"SC b{b}({nd}x{na}) d{x} a{y}" for b, (nd, na) in enumerate(BINNINGS) for x in range(nd) for y in range(na)]
+SC_COLUMNS = [
+    f"SC b{b}({nd}x{na}) d{x} a{y}" for b, (nd, na) in enumerate(BINNINGS) for x in range(nd) for y in range(na)
+]
 MAX_DISTANCE = 1.2  # last distance edge, in units of the mesh scale D
 LOG_POWER = 0.9  # exponent of the log-spaced distance edges
 WEIGHT_OFFSET = 0.1  # weight 1 / (d / D + 0.1)
@@ -88,8 +90,15 @@ def area_radius(geo, fraction: float) -> float:
     return float(np.median(np.take_along_axis(d, order, axis=1)[np.arange(len(d)), k]))
 
 
-def cell_moments(owner: np.ndarray, n_cells: int, area: np.ndarray, centers: np.ndarray, normals: np.ndarray,
-                 owner_dist: np.ndarray, fallback_centers: np.ndarray):
+def cell_moments(
+    owner: np.ndarray,
+    n_cells: int,
+    area: np.ndarray,
+    centers: np.ndarray,
+    normals: np.ndarray,
+    owner_dist: np.ndarray,
+    fallback_centers: np.ndarray,
+):
     """Area-weighted statistics of Voronoi cells: area (n,), centroid (n, 3), mean normal (n, 3),
     normal second moment (n, 3, 3) and radial spread sigma (n,) with sigma^2 = E[dist^2] / 2, the
     variance of a disk-like cell's distances seen from afar."""
@@ -98,7 +107,9 @@ def cell_moments(owner: np.ndarray, n_cells: int, area: np.ndarray, centers: np.
     cen = np.stack([np.bincount(owner, area * centers[:, j], n_cells) for j in range(3)], 1) / safe[:, None]
     cen[w <= 0] = fallback_centers[w <= 0]
     mn = np.stack([np.bincount(owner, area * normals[:, j], n_cells) for j in range(3)], 1) / safe[:, None]
-    nn = np.stack([np.bincount(owner, area * normals[:, j] * normals[:, l], n_cells) for j in range(3) for l in range(3)], 1)
+    nn = np.stack(
+        [np.bincount(owner, area * normals[:, j] * normals[:, l], n_cells) for j in range(3) for l in range(3)], 1
+    )
     nn = nn.reshape(n_cells, 3, 3) / safe[:, None, None]
     sigma = np.sqrt(np.bincount(owner, area * owner_dist.astype(np.float64) ** 2, n_cells) / safe / 2.0)
     return w, cen, mn, nn, sigma
@@ -165,7 +176,7 @@ class _Histogrammer:
             pa[na] = p
         col = 0
         for nd, na in BINNINGS:
-            H[:, col:col + nd * na] += np.matmul(pd[nd], pa[na]).reshape(n, -1)
+            H[:, col : col + nd * na] += np.matmul(pd[nd], pa[na]).reshape(n, -1)
             col += nd * na
 
 
@@ -175,7 +186,7 @@ def _near_pairs(graph, sources: np.ndarray, radius: float, nf: int):
     batch = max(1, int(4e6 // max(nf, 1)))
     src, face, dist = [], [], []
     for lo in range(0, len(sources), batch):
-        D = dijkstra(graph, directed=False, indices=sources[lo:lo + batch], limit=radius)
+        D = dijkstra(graph, directed=False, indices=sources[lo : lo + batch], limit=radius)
         r, f = np.nonzero(np.isfinite(D))
         src.append(r + lo)
         face.append(f)

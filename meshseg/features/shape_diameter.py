@@ -152,8 +152,11 @@ class RayCaster:
         self.centre = (lo + hi) / 2
         self.size = float(np.max(hi - lo)) or 1.0
         self.scene = rtcore_scene.EmbreeScene()
-        TriangleMesh(scene=self.scene, vertices=((V - self.centre) / self.size).astype(np.float32),
-                     indices=np.ascontiguousarray(F, dtype=np.int32))
+        TriangleMesh(
+            scene=self.scene,
+            vertices=((V - self.centre) / self.size).astype(np.float32),
+            indices=np.ascontiguousarray(F, dtype=np.int32),
+        )
 
     def first_hit(self, origins: np.ndarray, directions: np.ndarray, exclude: np.ndarray | None = None) -> np.ndarray:
         """Distance along each unit direction to the first surface point, inf where none; a hit
@@ -166,8 +169,11 @@ class RayCaster:
             if not len(live):
                 break
             s = start[live] + _OFFSET
-            hit = self.scene.run((o[live] + s[:, None] * directions[live]).astype(np.float32),
-                                 directions[live].astype(np.float32), output=1)
+            hit = self.scene.run(
+                (o[live] + s[:, None] * directions[live]).astype(np.float32),
+                directions[live].astype(np.float32),
+                output=1,
+            )
             prim, tfar = hit["primID"], hit["tfar"].astype(np.float64) + s
             found = prim >= 0
             own = found & (exclude[live] == prim) if exclude is not None else np.zeros_like(found)
@@ -192,8 +198,10 @@ def ray_statistics(D: np.ndarray) -> np.ndarray:
     """(F, 6) per row of ray lengths: mean, mean of squares, mean of 4th powers, mean of square
     roots, mean of 4th roots, median (mean of the two middle values for an even count)."""
     s = np.sqrt(D)
-    return np.stack([D.mean(1), (D * D).mean(1), (D * D * D * D).mean(1), s.mean(1), np.sqrt(s).mean(1),
-                     np.median(D, axis=1)], axis=1)
+    return np.stack(
+        [D.mean(1), (D * D).mean(1), (D * D * D * D).mean(1), s.mean(1), np.sqrt(s).mean(1), np.median(D, axis=1)],
+        axis=1,
+    )
 
 
 def normalise_columns(X: np.ndarray, quantile: float) -> np.ndarray:
@@ -269,8 +277,9 @@ def sdf_statistics(D: np.ndarray, rays_per_cone: int) -> np.ndarray:
     return np.concatenate([ray_statistics(rays[:, : k * (2 + i)]) for i in range(len(CONES))], axis=1)
 
 
-def shape_diameters(V: np.ndarray, F: np.ndarray, *, rays_per_cone: int = 8, normals: str = "vertex",
-                    frame: str = "principal") -> np.ndarray:
+def shape_diameters(
+    V: np.ndarray, F: np.ndarray, *, rays_per_cone: int = 8, normals: str = "vertex", frame: str = "principal"
+) -> np.ndarray:
     """Raw SDF ray lengths (F, 1 + 3·rays_per_cone) in the mesh's units, before any per-mesh
     normalisation: column 0 the axis ray along −n, then the 15°, 30° and 45° cones. On a sphere
     of radius r the axis ray is ≈ 2r and a ray at angle θ ≈ 2r·cos θ."""
@@ -282,8 +291,15 @@ def _columns() -> list[str]:
 
 
 @register("sdf", dim=72, columns=_columns())
-def sdf(V: np.ndarray, F: np.ndarray, *, rays_per_cone: int = 8, normals: str = "vertex", frame: str = "principal",
-        outlier_quantile: float = 0.95) -> np.ndarray:
+def sdf(
+    V: np.ndarray,
+    F: np.ndarray,
+    *,
+    rays_per_cone: int = 8,
+    normals: str = "vertex",
+    frame: str = "principal",
+    outlier_quantile: float = 0.95,
+) -> np.ndarray:
     """Shape diameter function, 72 columns = 4 transforms × 3 cones × 6 statistics.
 
     Per face, rays from the centre: the axis −n and `rays_per_cone` rays on each cone of 15°,

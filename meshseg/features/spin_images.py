@@ -62,8 +62,9 @@ def spin_samples(V: np.ndarray, vn: np.ndarray, w: np.ndarray, n_samples: int, b
     return V[keep][seeds], vn[keep][seeds], np.bincount(cell, w[keep], minlength=n_samples)
 
 
-def spin_histograms(C: np.ndarray, N: np.ndarray, P: np.ndarray, PN: np.ndarray, W: np.ndarray,
-                    support: float) -> np.ndarray:
+def spin_histograms(
+    C: np.ndarray, N: np.ndarray, P: np.ndarray, PN: np.ndarray, W: np.ndarray, support: float
+) -> np.ndarray:
     """(F, 100) spin images of the faces (centres C, normals N) over points P (normals PN,
     weights W): rows are β bins from +support (bin 0) down to −support, columns α bins from 0 to
     support, flattened β-major. A point counts only if its normal faces the same side as the
@@ -78,7 +79,7 @@ def spin_histograms(C: np.ndarray, N: np.ndarray, P: np.ndarray, PN: np.ndarray,
     reach = np.float32(0.9)  # a point farther than 0.885 bin widths from every bin centre gets nothing
     step = max(1, _PAIRS_PER_BLOCK // max(len(P), 1))
     for s in range(0, len(C), step):
-        c, n = C[s:s + step].astype(np.float32), N[s:s + step].astype(np.float32)
+        c, n = C[s : s + step].astype(np.float32), N[s : s + step].astype(np.float32)
         b = len(c)
         beta = n @ P32.T
         beta -= np.einsum("ij,ij->i", n, c)[:, None]
@@ -124,7 +125,7 @@ def spin_histograms(C: np.ndarray, N: np.ndarray, P: np.ndarray, PN: np.ndarray,
         acc = np.zeros(b * nb + 2 * (BINS + 1))
         for offset, g in corners:
             acc += np.bincount(base + offset, g * scale, minlength=len(acc))
-        out[s:s + b] = acc[BINS + 1:BINS + 1 + b * nb].reshape(b, nb)
+        out[s : s + b] = acc[BINS + 1 : BINS + 1 + b * nb].reshape(b, nb)
     return out
 
 
@@ -137,8 +138,9 @@ def _columns() -> list[str]:
 
 
 @register("spin_images", dim=100, columns=_columns())
-def spin_images(V: np.ndarray, F: np.ndarray, *, n_samples: int = 1024, support: float = 2.0,
-                normals: str = "vertex") -> np.ndarray:
+def spin_images(
+    V: np.ndarray, F: np.ndarray, *, n_samples: int = 1024, support: float = 2.0, normals: str = "vertex"
+) -> np.ndarray:
     """Spin images, 100 columns = 10 β bins × 10 α bins (column "SI beta{i} alpha{j}").
 
     Units: the mesh is centred and scaled by `geometry.kalogerakis_units`, and the image covers

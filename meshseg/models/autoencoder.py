@@ -9,7 +9,7 @@ the decoder is linear by default because the inputs are z-scores, not MATLAB's [
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 from torch import nn

@@ -53,7 +53,7 @@ from __future__ import annotations
 import ctypes
 import math
 import sys
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
@@ -79,7 +79,8 @@ class _Conv(torch.autograd.Function):
         grad_x = grad_w = grad_b = None
         if need_x or need_w:
             grad_x, grad_w, _ = torch.ops.aten.convolution_backward(
-                grad, x, weight, None, [1, 1], ctx.padding, [1, 1], False, [0, 0], 1, [need_x, need_w, False])
+                grad, x, weight, None, [1, 1], ctx.padding, [1, 1], False, [0, 0], 1, [need_x, need_w, False]
+            )
         if need_b:
             grad_b = grad.permute(0, 2, 3, 1).reshape(-1, grad.shape[1]).sum(0)  # a view when channels-last
         return grad_x, grad_w, grad_b, None
@@ -133,8 +134,9 @@ class BranchConvBlock(nn.Module):
     """One Conv1d ('same') -> BatchNorm -> LeakyReLU -> MaxPool stage of all B branches, parameters stacked
     over branches; ``block(h, k)`` runs branch k on its (N, L, C_in) channels-last map."""
 
-    def __init__(self, branches: int, in_channels: int, out_channels: int, kernel: int, pool: int,
-                 negative_slope: float):
+    def __init__(
+        self, branches: int, in_channels: int, out_channels: int, kernel: int, pool: int, negative_slope: float
+    ):
         super().__init__()
         self.kernel, self.pool, self.negative_slope = kernel, pool, negative_slope
         self.weight = nn.Parameter(torch.empty(branches, out_channels, in_channels, kernel))
@@ -159,8 +161,16 @@ class BranchConvBlock(nn.Module):
         weight, bias, padding = self.weight[k], self.bias[k], (0, self.kernel // 2 if self.kernel % 2 else 0)
         if self.training:
             w4 = weight.unsqueeze(2).contiguous(memory_format=torch.channels_last)  # (C_out, C_in, 1, K)
-            z4 = F.batch_norm(_Conv.apply(x4, w4, bias, padding), self.running_mean[k], self.running_var[k],
-                              self.bn_weight[k], self.bn_bias[k], True, 0.1, 1e-5)  # (N, C_out, 1, L)
+            z4 = F.batch_norm(
+                _Conv.apply(x4, w4, bias, padding),
+                self.running_mean[k],
+                self.running_var[k],
+                self.bn_weight[k],
+                self.bn_bias[k],
+                True,
+                0.1,
+                1e-5,
+            )  # (N, C_out, 1, L)
         else:  # batch norm with the running statistics is affine: fold it into the convolution
             scale = self.bn_weight[k] * (self.running_var[k] + 1e-5).rsqrt()
             w4 = (weight * scale[:, None, None]).unsqueeze(2).contiguous(memory_format=torch.channels_last)
@@ -171,9 +181,18 @@ class BranchConvBlock(nn.Module):
 class MultiBranchCNN1D(nn.Module):
     """The paper's multi-branch 1D CNN: input (N, branches, n_features) float -> logits (N, n_classes)."""
 
-    def __init__(self, n_features: int, n_classes: int, branches: int = 3, channels: Sequence[int] = (16, 32),
-                 kernels: Sequence[int] = (15, 11), hidden: int = 172, negative_slope: float = 0.2,
-                 dropout: float = 0.5, pool: int = 2):
+    def __init__(
+        self,
+        n_features: int,
+        n_classes: int,
+        branches: int = 3,
+        channels: Sequence[int] = (16, 32),
+        kernels: Sequence[int] = (15, 11),
+        hidden: int = 172,
+        negative_slope: float = 0.2,
+        dropout: float = 0.5,
+        pool: int = 2,
+    ):
         super().__init__()
         channels, kernels = tuple(int(c) for c in channels), tuple(int(k) for k in kernels)
         n_features, n_classes, branches, hidden, pool = map(int, (n_features, n_classes, branches, hidden, pool))
@@ -184,16 +203,19 @@ class MultiBranchCNN1D(nn.Module):
         if min(channels + kernels) < 1 or min(n_classes, hidden, pool) < 1:
             raise ValueError("channels, kernels, n_classes, hidden and pool must all be >= 1")
         if negative_slope < 0:
-            raise ValueError(f"negative_slope must be >= 0 (pooling before the activation needs it monotonic), "
-                             f"got {negative_slope}")
+            raise ValueError(
+                f"negative_slope must be >= 0 (pooling before the activation needs it monotonic), got {negative_slope}"
+            )
         if not 0 <= dropout < 1:
             raise ValueError(f"dropout must be in [0, 1), got {dropout}")
         self.out_length = _out_length(n_features, len(channels), pool)
         if self.out_length < 1:
             raise ValueError(f"n_features={n_features} is too short for {len(channels)} poolings by {pool}")
         self.n_features, self.n_classes, self.branches, self.dropout = n_features, n_classes, branches, dropout
-        self.layers = nn.ModuleList(BranchConvBlock(branches, c_in, c_out, k, pool, float(negative_slope))
-                                    for c_in, c_out, k in zip((1,) + channels[:-1], channels, kernels))
+        self.layers = nn.ModuleList(
+            BranchConvBlock(branches, c_in, c_out, k, pool, float(negative_slope))
+            for c_in, c_out, k in zip((1,) + channels[:-1], channels, kernels)
+        )
         for k in range(branches):  # the straightforward network's init order: branch by branch, then the head
             for layer in self.layers:
                 layer.reset_branch(k)
@@ -219,8 +241,10 @@ class MultiBranchCNN1D(nn.Module):
     def _check(self, x: torch.Tensor) -> torch.Tensor:
         expected = (self.branches, self.n_features)
         if x.dim() != 3 or tuple(x.shape[1:]) != expected:
-            raise ValueError(f"expected input of shape (N, {expected[0]}, {expected[1]}) "
-                             f"(batch, branches, features), got {tuple(x.shape)}")
+            raise ValueError(
+                f"expected input of shape (N, {expected[0]}, {expected[1]}) "
+                f"(batch, branches, features), got {tuple(x.shape)}"
+            )
         return x.to(self.fc1.weight.dtype)
 
     def _feature_maps(self, x: torch.Tensor) -> torch.Tensor:
@@ -243,8 +267,15 @@ def _out_length(n_features: int, n_layers: int, pool: int) -> int:
     return n_features
 
 
-def flops_per_sample(n_features: int, n_classes: int, branches: int = 3, channels: Sequence[int] = (16, 32),
-                     kernels: Sequence[int] = (15, 11), hidden: int = 172, pool: int = 2) -> int:
+def flops_per_sample(
+    n_features: int,
+    n_classes: int,
+    branches: int = 3,
+    channels: Sequence[int] = (16, 32),
+    kernels: Sequence[int] = (15, 11),
+    hidden: int = 172,
+    pool: int = 2,
+) -> int:
     """Forward FLOPs of one sample: 2 x the multiply-adds of the convolutions and the two linear layers.
 
     Batch norm, activations, pooling and biases (a few operations per activation, not per weight) are

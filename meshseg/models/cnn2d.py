@@ -34,7 +34,7 @@ cnn2d_throughput.py measures the result beside the 1D CNN.
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
@@ -62,10 +62,22 @@ class ToG15CNN2D(nn.Module):
     training code can build every model the same way.
     """
 
-    def __init__(self, n_features: int, n_classes: int, branches: int = 1, image_shape: Sequence[int] = (30, 20),
-                 channels: Sequence[int] = (16, 32), kernels: Sequence = ((7, 5), (5, 5)), padding: str = "same",
-                 pool: int = 2, hidden: int = 128, activation: str = "relu", negative_slope: float = 0.2,
-                 batch_norm: bool = True, dropout: float = 0.5):
+    def __init__(
+        self,
+        n_features: int,
+        n_classes: int,
+        branches: int = 1,
+        image_shape: Sequence[int] = (30, 20),
+        channels: Sequence[int] = (16, 32),
+        kernels: Sequence = ((7, 5), (5, 5)),
+        padding: str = "same",
+        pool: int = 2,
+        hidden: int = 128,
+        activation: str = "relu",
+        negative_slope: float = 0.2,
+        batch_norm: bool = True,
+        dropout: float = 0.5,
+    ):
         super().__init__()
         n_features, n_classes, branches, hidden, pool = map(int, (n_features, n_classes, branches, hidden, pool))
         height, width = _pair(image_shape, "image_shape")
@@ -74,8 +86,10 @@ class ToG15CNN2D(nn.Module):
         if branches != 1:
             raise ValueError(f"ToG15CNN2D takes branches=1 (one feature vector per face), got {branches}")
         if height * width != n_features:
-            raise ValueError(f"image_shape {height}x{width} holds {height * width} values, but there are "
-                             f"{n_features} features: choose H x W = {n_features}")
+            raise ValueError(
+                f"image_shape {height}x{width} holds {height * width} values, but there are "
+                f"{n_features} features: choose H x W = {n_features}"
+            )
         if min(height, width) < 1:
             raise ValueError(f"image_shape must be positive, got {height}x{width}")
         if not channels or len(channels) != len(kernels):
@@ -107,8 +121,10 @@ class ToG15CNN2D(nn.Module):
             self.norms.append(nn.BatchNorm2d(c_out) if batch_norm else nn.Identity())
             h, w, c_in = h // pool, w // pool, c_out
             if min(h, w) < 1:
-                raise ValueError(f"image {height}x{width} is too small for {len(channels)} '{padding}' convolutions "
-                                 f"{kernels} each followed by {pool}x{pool} pooling")
+                raise ValueError(
+                    f"image {height}x{width} is too small for {len(channels)} '{padding}' convolutions "
+                    f"{kernels} each followed by {pool}x{pool} pooling"
+                )
         self.out_shape = (c_in, h, w)  # the map before flattening
         self.fc1 = nn.Linear(c_in * h * w, hidden)
         self.fc2 = nn.Linear(hidden, n_classes)
@@ -146,6 +162,7 @@ class ToG15CNN2D(nn.Module):
 
     def _check(self, x: torch.Tensor) -> torch.Tensor:
         if x.dim() != 3 or tuple(x.shape[1:]) != (1, self.n_features):
-            raise ValueError(f"expected input of shape (N, 1, {self.n_features}) (batch, branches, features), "
-                             f"got {tuple(x.shape)}")
+            raise ValueError(
+                f"expected input of shape (N, 1, {self.n_features}) (batch, branches, features), got {tuple(x.shape)}"
+            )
         return x.to(self.fc1.weight.dtype)

@@ -18,15 +18,29 @@ class RandomForest:
     Deterministic for a given seed whatever `n_jobs` is (each tree's seed is drawn up front).
     """
 
-    def __init__(self, n_classes: int, n_estimators: int = 100, max_features: str | float | int | None = "sqrt",
-                 min_samples_leaf: int = 1, max_depth: int | None = None, bootstrap: bool = True,
-                 n_jobs: int | None = 1, seed: int = 0):
+    def __init__(
+        self,
+        n_classes: int,
+        n_estimators: int = 100,
+        max_features: str | float | int | None = "sqrt",
+        min_samples_leaf: int = 1,
+        max_depth: int | None = None,
+        bootstrap: bool = True,
+        n_jobs: int | None = 1,
+        seed: int = 0,
+    ):
         self.n_classes = int(n_classes)
-        self.forest = RandomForestClassifier(n_estimators=int(n_estimators), max_features=max_features,
-                                             min_samples_leaf=int(min_samples_leaf), max_depth=max_depth,
-                                             bootstrap=bool(bootstrap), n_jobs=n_jobs, random_state=int(seed))
+        self.forest = RandomForestClassifier(
+            n_estimators=int(n_estimators),
+            max_features=max_features,
+            min_samples_leaf=int(min_samples_leaf),
+            max_depth=max_depth,
+            bootstrap=bool(bootstrap),
+            n_jobs=n_jobs,
+            random_state=int(seed),
+        )
 
-    def fit(self, X: np.ndarray, y: np.ndarray) -> "RandomForest":
+    def fit(self, X: np.ndarray, y: np.ndarray) -> RandomForest:
         self.forest.fit(X.reshape(len(X), -1), y)
         return self
 

@@ -8,14 +8,19 @@ faces only, as scikit-learn's PCA would be (`components_`, `mean_`).
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import torch
 from torch import nn
 
-ACTIVATIONS = {"tanh": nn.Tanh, "relu": nn.ReLU, "sigmoid": nn.Sigmoid, "leaky_relu": nn.LeakyReLU,
-               "linear": nn.Identity}
+ACTIVATIONS = {
+    "tanh": nn.Tanh,
+    "relu": nn.ReLU,
+    "sigmoid": nn.Sigmoid,
+    "leaky_relu": nn.LeakyReLU,
+    "linear": nn.Identity,
+}
 
 
 def make_activation(name: str) -> nn.Module:
@@ -33,8 +38,10 @@ def principal_axes(X: np.ndarray, n_components: int, chunk: int = 65536) -> tupl
     """
     n, d = X.shape
     if not 1 <= n_components <= min(n, d):
-        raise ValueError(f"PCA to {n_components} components needs at least that many features and training faces; "
-                         f"got {d} features and {n} faces")
+        raise ValueError(
+            f"PCA to {n_components} components needs at least that many features and training faces; "
+            f"got {d} features and {n} faces"
+        )
     mean = X.mean(axis=0, dtype=np.float64)
     cov = np.zeros((d, d))
     for i in range(0, n, chunk):
@@ -54,7 +61,7 @@ class PCAProjection(nn.Module):
         self.register_buffer("mean", torch.zeros(int(n_features)))
         self.register_buffer("components", torch.zeros(int(n_components), int(n_features)))
 
-    def fit(self, X: np.ndarray) -> "PCAProjection":
+    def fit(self, X: np.ndarray) -> PCAProjection:
         """Set mean and components from the rows of X (n, d): the training faces only."""
         mean, axes = principal_axes(X, self.components.shape[0])
         self.mean.copy_(torch.from_numpy(mean))
@@ -73,8 +80,15 @@ class PCANet(nn.Module):
     not stated (MATLAB's patternnet default, tanh, is the config default).
     """
 
-    def __init__(self, n_features: int, n_classes: int, branches: int = 1, n_components: int = 50,
-                 hidden: Sequence[int] = (50, 25, 12), activation: str = "tanh"):
+    def __init__(
+        self,
+        n_features: int,
+        n_classes: int,
+        branches: int = 1,
+        n_components: int = 50,
+        hidden: Sequence[int] = (50, 25, 12),
+        activation: str = "tanh",
+    ):
         super().__init__()
         if int(branches) != 1:
             raise ValueError(f"PCANet takes one branch (single-scale features), got branches={branches}")

@@ -28,15 +28,20 @@ def check_refine(cfg) -> None:
         raise ConfigError(f"unknown refinement {cfg.name!r}; known: {list(METHODS)}")
     if cfg.name == "none":
         return
-    checks = [("lam", float(cfg.lam) >= 0, ">= 0"), ("eps", 0 < float(cfg.eps) < 1, "in (0, 1)"),
-              ("convex_factor", float(cfg.convex_factor) >= 0, ">= 0"),
-              ("theta_eps", 0 < float(cfg.theta_eps) <= 1, "in (0, 1]"),
-              ("n_iter", int(cfg.n_iter) == -1 or int(cfg.n_iter) >= 1, "-1 (until converged) or >= 1")]
+    checks = [
+        ("lam", float(cfg.lam) >= 0, ">= 0"),
+        ("eps", 0 < float(cfg.eps) < 1, "in (0, 1)"),
+        ("convex_factor", float(cfg.convex_factor) >= 0, ">= 0"),
+        ("theta_eps", 0 < float(cfg.theta_eps) <= 1, "in (0, 1]"),
+        ("n_iter", int(cfg.n_iter) == -1 or int(cfg.n_iter) >= 1, "-1 (until converged) or >= 1"),
+    ]
     if cfg.name == "graphcut_classic":
         checks.append(("length_norm", cfg.length_norm in ("mean", "none"), "mean or none"))
     else:
-        checks += [("omega", float(cfg.omega) >= 0, ">= 0"),
-                   ("feature_norm", cfg.feature_norm in ("std", "none"), "std or none")]
+        checks += [
+            ("omega", float(cfg.omega) >= 0, ">= 0"),
+            ("feature_norm", cfg.feature_norm in ("std", "none"), "std or none"),
+        ]
     for key, ok, allowed in checks:
         if not ok:
             raise ConfigError(f"refine.{key}={cfg[key]} is not allowed with refine={cfg.name}: it must be {allowed}")

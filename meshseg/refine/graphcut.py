@@ -127,8 +127,9 @@ def unary_costs(probabilities: np.ndarray, eps: float) -> np.ndarray:
     return -np.log(np.clip(np.asarray(probabilities, np.float64), eps, 1.0))
 
 
-def potts_energy(labels: np.ndarray, probabilities: np.ndarray, pairs: np.ndarray, weights: np.ndarray,
-                 lam: float, eps: float) -> float:
+def potts_energy(
+    labels: np.ndarray, probabilities: np.ndarray, pairs: np.ndarray, weights: np.ndarray, lam: float, eps: float
+) -> float:
     """E(labels) = sum_u -log p_u(l_u) + lam * sum_uv w_uv [l_u != l_v], in floating point."""
     labels = np.asarray(labels)
     data = unary_costs(probabilities, eps)[np.arange(len(labels)), labels].sum()
@@ -136,8 +137,9 @@ def potts_energy(labels: np.ndarray, probabilities: np.ndarray, pairs: np.ndarra
     return float(data + lam * np.asarray(weights, np.float64)[cut].sum())
 
 
-def alpha_expansion(probabilities: np.ndarray, pairs: np.ndarray, weights: np.ndarray, lam: float,
-                    eps: float = 1e-6, n_iter: int = -1) -> np.ndarray:
+def alpha_expansion(
+    probabilities: np.ndarray, pairs: np.ndarray, weights: np.ndarray, lam: float, eps: float = 1e-6, n_iter: int = -1
+) -> np.ndarray:
     """Labels (F,) minimising the Potts energy (see `potts_energy`) by alpha-expansion.
 
     Starts from the argmax labels and runs expansion cycles until none lowers the energy
@@ -172,6 +174,14 @@ def alpha_expansion(probabilities: np.ndarray, pairs: np.ndarray, weights: np.nd
     edge_w = np.rint(w * scale).astype(np.int32)
     potts = (1 - np.eye(P.shape[1])).astype(np.int32)
     # all-integer input with down_weight_factor 1: gco then passes the terms through unchanged
-    labels = gco.cut_general_graph(pairs.astype(np.int32), edge_w, unary, potts, n_iter=n_iter,
-                                   algorithm="expansion", init_labels=start, down_weight_factor=1)
+    labels = gco.cut_general_graph(
+        pairs.astype(np.int32),
+        edge_w,
+        unary,
+        potts,
+        n_iter=n_iter,
+        algorithm="expansion",
+        init_labels=start,
+        down_weight_factor=1,
+    )
     return np.asarray(labels, np.int64)

@@ -13,5 +13,15 @@ from meshseg.report.publish import build, publish, summary
 from meshseg.report.table import Table, collect
 from meshseg.report.write import write_report
 
-__all__ = ["ManifestError", "Manifest", "Table", "load_manifest", "collect", "write_report", "build", "publish",
-           "summary", "report"]
+__all__ = [
+    "ManifestError",
+    "Manifest",
+    "Table",
+    "load_manifest",
+    "collect",
+    "write_report",
+    "build",
+    "publish",
+    "summary",
+    "report",
+]

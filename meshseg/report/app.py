@@ -54,7 +54,7 @@ def run_app(argv, app, config_name: str, doc: str) -> None:
         print(f"error: {e}", file=sys.stderr)
         sys.exit(ERROR_EXIT)
     saved = sys.argv
-    sys.argv = [saved[0], *args]   # hydra.main reads sys.argv
+    sys.argv = [saved[0], *args]  # hydra.main reads sys.argv
     try:
         app()
     finally:

@@ -94,8 +94,10 @@ def check_report_keys(app_args, config_name: str) -> None:
         key = _key(arg)
         if key.startswith("report.") and key.split(".")[1] not in keys:
             command = "meshseg.report" if config_name == "report" else f"meshseg.{config_name}"
-            raise ConfigError(f"unknown report setting {key.split('.')[1]!r} in {arg!r}: {command} takes "
-                              f"{', '.join('report.' + k for k in keys)}")
+            raise ConfigError(
+                f"unknown report setting {key.split('.')[1]!r} in {arg!r}: {command} takes "
+                f"{', '.join('report.' + k for k in keys)}"
+            )
 
 
 def _quoted(value: str) -> str:
@@ -158,4 +160,3 @@ def check_config(cfg: DictConfig) -> None:
     for key in ("log", *(("dry_run",) if "dry_run" in s else ())):
         if not isinstance(s[key], bool):
             raise ConfigError(f"report.{key}={s[key]} must be true or false")
-

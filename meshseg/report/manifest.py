@@ -27,8 +27,8 @@ class Column:
 
 @dataclass(frozen=True)
 class Set:
-    name: str          # the row label as printed
-    category: str      # the dataset's category
+    name: str  # the row label as printed
+    category: str  # the dataset's category
     published: tuple[float | None, ...]
     test_meshes: int | None = None
 
@@ -38,7 +38,7 @@ class Group:
     name: str
     overrides: tuple[str, ...]
     sets: tuple[Set, ...]
-    average: str | None                          # label of the group's average row, None: no such row
+    average: str | None  # label of the group's average row, None: no such row
     published_average: tuple[float | None, ...]
 
 
@@ -51,7 +51,7 @@ class Manifest:
     overrides: tuple[str, ...]
     columns: tuple[Column, ...]
     groups: tuple[Group, ...]
-    total: str | None                            # label of the average over every set of every group
+    total: str | None  # label of the average over every set of every group
     published_total: tuple[float | None, ...]
     path: Path
 
@@ -72,8 +72,9 @@ def _numbers(value, n: int, path, where: str) -> tuple[float | None, ...]:
     if value is None:
         return (None,) * n
     if not isinstance(value, list) or len(value) != n:
-        raise ManifestError(path, f"{where}: expected a list of {n} numbers (one per column, null for none), "
-                                  f"got {value!r}")
+        raise ManifestError(
+            path, f"{where}: expected a list of {n} numbers (one per column, null for none), got {value!r}"
+        )
     for v in value:
         if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float))):
             raise ManifestError(path, f"{where}: {v!r} is not a number")
@@ -113,17 +114,37 @@ def load_manifest(path: str | Path) -> Manifest:
         for s in g.get("sets") or []:
             if not isinstance(s, dict) or "name" not in s:
                 raise ManifestError(path, f"group {gname}: each set needs a name")
-            sets.append(Set(str(s["name"]), str(s.get("category", s["name"])),
-                            _numbers(s.get("published"), n, path, f"set {s['name']} published"), s.get("test_meshes")))
+            sets.append(
+                Set(
+                    str(s["name"]),
+                    str(s.get("category", s["name"])),
+                    _numbers(s.get("published"), n, path, f"set {s['name']} published"),
+                    s.get("test_meshes"),
+                )
+            )
         if not sets:
             raise ManifestError(path, f"group {gname} has no sets")
-        groups.append(Group(gname, _overrides(g.get("overrides"), path, f"group {gname}"), tuple(sets),
-                            g.get("average"),
-                            _numbers(g.get("published_average"), n, path, f"group {gname} published_average")))
+        groups.append(
+            Group(
+                gname,
+                _overrides(g.get("overrides"), path, f"group {gname}"),
+                tuple(sets),
+                g.get("average"),
+                _numbers(g.get("published_average"), n, path, f"group {gname} published_average"),
+            )
+        )
     if not groups:
         raise ManifestError(path, "no groups")
     total = doc.get("total") or {}
-    return Manifest(str(doc["name"]), str(doc["title"]), str(doc.get("source", "")),
-                    str(doc.get("note", "") or "").strip(),
-                    _overrides(doc.get("overrides"), path, "manifest"), tuple(columns), tuple(groups),
-                    total.get("label"), _numbers(total.get("published"), n, path, "total published"), path)
+    return Manifest(
+        str(doc["name"]),
+        str(doc["title"]),
+        str(doc.get("source", "")),
+        str(doc.get("note", "") or "").strip(),
+        _overrides(doc.get("overrides"), path, "manifest"),
+        tuple(columns),
+        tuple(groups),
+        total.get("label"),
+        _numbers(total.get("published"), n, path, "total published"),
+        path,
+    )

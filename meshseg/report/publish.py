@@ -18,8 +18,15 @@ def build(manifest: Manifest, cfg: DictConfig) -> Table:
     """The manifest's table from the runs, with the app config's run overrides and `report.*` settings."""
     s = cfg.report
     sets = None if s.sets is None else list(s.sets)
-    return collect(manifest, run_overrides(cfg), metric=s.metric, n_boot=int(s.n_boot), level=float(s.level),
-                   seed=int(s.seed), sets=sets)
+    return collect(
+        manifest,
+        run_overrides(cfg),
+        metric=s.metric,
+        n_boot=int(s.n_boot),
+        level=float(s.level),
+        seed=int(s.seed),
+        sets=sets,
+    )
 
 
 def log_report(table: Table, files: list[Path], settings: DictConfig) -> str:
@@ -30,16 +37,22 @@ def log_report(table: Table, files: list[Path], settings: DictConfig) -> str:
     from meshseg.tracking import Tracker, git_sha
 
     m = table.manifest
-    settings = OmegaConf.masked_copy(settings, [k for k in settings if k != "dry_run"])   # reproduce's own switch
+    settings = OmegaConf.masked_copy(settings, [k for k in settings if k != "dry_run"])  # reproduce's own switch
     with hydra_scope():
         cfg = compose("run", overrides=[*m.overrides, *table.overrides])
     tracker = Tracker(cfg.tracking.uri, settings.experiment, cfg.tracking.artifact_dir)
     ident = hashlib.sha256(repr((m.name, table.overrides, OmegaConf.to_yaml(settings))).encode()).hexdigest()[:16]
-    tags = {"report": m.name, "budget": ",".join(table.budgets), "config_hash": ident, "git_sha": git_sha(),
-            "manifest": str(m.path)}
+    tags = {
+        "report": m.name,
+        "budget": ",".join(table.budgets),
+        "config_hash": ident,
+        "git_sha": git_sha(),
+        "manifest": str(m.path),
+    }
     cells = [c for r in table.rows for c in r.cells if c.status != "published"]
-    metrics = {f"cells_{status}": sum(c.status == status for c in cells)
-               for status in ("ok", "incomplete", "unavailable")}
+    metrics = {
+        f"cells_{status}": sum(c.status == status for c in cells) for status in ("ok", "incomplete", "unavailable")
+    }
     for row in table.rows:
         for c in row.cells:
             if row.kind != "set" and c.value is not None:

@@ -31,15 +31,15 @@ from meshseg.tracking import FoldRecord
 class Cell:
     column: Column
     published: float | None
-    accs: np.ndarray | None = None     # per test mesh, %, over all folds (a complete set cell)
-    folds: int = 0                     # folds the split has
-    missing: tuple[int, ...] = ()      # folds without a FINISHED run
-    problem: str | None = None         # why no run can exist (dataset lacks the category, ...)
+    accs: np.ndarray | None = None  # per test mesh, %, over all folds (a complete set cell)
+    folds: int = 0  # folds the split has
+    missing: tuple[int, ...] = ()  # folds without a FINISHED run
+    problem: str | None = None  # why no run can exist (dataset lacks the category, ...)
     budget: str | None = None
-    overrides: tuple[str, ...] = ()    # what `meshseg.run` needs to make this cell's runs
-    category: str | None = None        # the dataset's own name for the set
+    overrides: tuple[str, ...] = ()  # what `meshseg.run` needs to make this cell's runs
+    category: str | None = None  # the dataset's own name for the set
     run_ids: tuple[str, ...] = ()
-    members: list[Cell] = field(default_factory=list)   # an average's set cells
+    members: list[Cell] = field(default_factory=list)  # an average's set cells
     value: float | None = None
     ci: tuple[float, float] | None = None
 
@@ -74,7 +74,7 @@ class Cell:
 @dataclass
 class Row:
     label: str
-    kind: str            # set | average | total
+    kind: str  # set | average | total
     group: str
     cells: list[Cell]
 
@@ -86,7 +86,7 @@ class Table:
     overrides: tuple[str, ...]
     metric: str
     level: float
-    budget_text: dict[str, str] = field(default_factory=dict)   # budget name -> what it trains on
+    budget_text: dict[str, str] = field(default_factory=dict)  # budget name -> what it trains on
 
     @property
     def budgets(self) -> list[str]:
@@ -141,8 +141,9 @@ class _Runs:
             return
         token = None
         while True:
-            page = self.client.search_runs([exp.experiment_id], "attributes.status = 'FINISHED'", max_results=1000,
-                                           page_token=token)
+            page = self.client.search_runs(
+                [exp.experiment_id], "attributes.status = 'FINISHED'", max_results=1000, page_token=token
+            )
             for r in page:
                 h = r.data.tags.get("config_hash")
                 if h and (h not in self.by_hash or r.info.end_time > self.by_hash[h].info.end_time):
@@ -159,8 +160,10 @@ class _Runs:
                 with open(path, newline="") as f:
                     return [100.0 * float(row[self.metric]) for row in csv.DictReader(f)]
         except Exception as e:  # a FINISHED run without a readable table is damage in the store, not a missing fold
-            raise TrackingError(f"run {run.info.run_id} ({run.info.run_name}): cannot read {self.metric} from "
-                                f"{FoldRecord.PER_MESH}: {type(e).__name__}: {e}") from None
+            raise TrackingError(
+                f"run {run.info.run_id} ({run.info.run_name}): cannot read {self.metric} from "
+                f"{FoldRecord.PER_MESH}: {type(e).__name__}: {e}"
+            ) from None
 
 
 def _fill(cell: Cell, category: str, dataset, split, resolved: dict, runs: _Runs) -> None:
@@ -175,7 +178,7 @@ def _fill(cell: Cell, category: str, dataset, split, resolved: dict, runs: _Runs
         return
     try:
         folds = folds_for(dataset, cell.category, split)
-    except (MeshsegError, ValueError) as e:   # the split cannot be made here (data code reports that as ValueError)
+    except (MeshsegError, ValueError) as e:  # the split cannot be made here (data code reports that as ValueError)
         cell.problem = str(e)
         return
     found, missing = [], []
@@ -192,8 +195,16 @@ def _fill(cell: Cell, category: str, dataset, split, resolved: dict, runs: _Runs
         cell.accs = np.array([a for r in found for a in runs.mesh_accuracies(r)])
 
 
-def collect(manifest: Manifest, overrides=(), *, metric: str = "acc", n_boot: int = 2000, level: float = 0.95,
-            seed: int = 0, sets=None) -> Table:
+def collect(
+    manifest: Manifest,
+    overrides=(),
+    *,
+    metric: str = "acc",
+    n_boot: int = 2000,
+    level: float = 0.95,
+    seed: int = 0,
+    sets=None,
+) -> Table:
     """Build the table of `manifest` from the runs in the store the composed config names.
 
     `overrides` are run overrides applied after the manifest's (e.g. budget=cpu, tracking.uri=...);
@@ -209,8 +220,10 @@ def collect(manifest: Manifest, overrides=(), *, metric: str = "acc", n_boot: in
     keep = None if sets is None else {str(s) for s in sets}
     known = {name for g in manifest.groups for s in g.sets for name in (s.name, s.category)}
     if keep is not None and not keep <= known:
-        raise ConfigError(f"report.sets: {sorted(keep - known)} name no set of {manifest.name}; its sets are "
-                          f"{', '.join(s.name for g in manifest.groups for s in g.sets)}")
+        raise ConfigError(
+            f"report.sets: {sorted(keep - known)} name no set of {manifest.name}; its sets are "
+            f"{', '.join(s.name for g in manifest.groups for s in g.sets)}"
+        )
     stores: dict[tuple[str, str], _Runs] = {}
     datasets: dict[str, object] = {}
     rows: list[Row] = []
@@ -239,10 +252,10 @@ def collect(manifest: Manifest, overrides=(), *, metric: str = "acc", n_boot: in
                 if dkey not in datasets:
                     try:
                         datasets[dkey] = build_dataset(cfg.dataset)
-                    except (MeshsegError, OSError, ValueError) as e:   # no such data here: its cells say so
+                    except (MeshsegError, OSError, ValueError) as e:  # no such data here: its cells say so
                         datasets[dkey] = f"dataset {cfg.dataset._target_.rsplit('.', 1)[-1]} unavailable: {e}"
                 dataset = datasets[dkey]
-                resolved = OmegaConf.to_container(cfg, resolve=True)   # once per column, not per fold
+                resolved = OmegaConf.to_container(cfg, resolve=True)  # once per column, not per fold
                 for s, cell in zip(chosen, (row[j] for row in grid)):
                     cell.budget, cell.overrides = cfg.budget.name, tuple(over)
                     if isinstance(dataset, str):
@@ -257,14 +270,35 @@ def collect(manifest: Manifest, overrides=(), *, metric: str = "acc", n_boot: in
                         cell.ci = bootstrap_ci([cell.accs], n_boot, level, rng)
                 rows.append(Row(s.name, "set", group.name, cells))
             if group.average and len(chosen) == len(group.sets):
-                members = [r.cells for r in rows[-len(chosen):]]
-                rows.append(Row(group.average, "average", group.name,
-                                _averages(manifest, members, group.published_average, n_boot, level, seed,
-                                          ("average", group.name, group.average))))
+                members = [r.cells for r in rows[-len(chosen) :]]
+                rows.append(
+                    Row(
+                        group.average,
+                        "average",
+                        group.name,
+                        _averages(
+                            manifest,
+                            members,
+                            group.published_average,
+                            n_boot,
+                            level,
+                            seed,
+                            ("average", group.name, group.average),
+                        ),
+                    )
+                )
     if manifest.total and keep is None:
         every = [r.cells for r in rows if r.kind == "set"]
-        rows.append(Row(manifest.total, "total", "", _averages(manifest, every, manifest.published_total, n_boot,
-                                                               level, seed, ("total", "", manifest.total))))
+        rows.append(
+            Row(
+                manifest.total,
+                "total",
+                "",
+                _averages(
+                    manifest, every, manifest.published_total, n_boot, level, seed, ("total", "", manifest.total)
+                ),
+            )
+        )
     return Table(manifest, rows, tuple(overrides), metric, level, budget_text)
 
 
@@ -274,7 +308,7 @@ def _compose_error(e: Exception, manifest: Manifest, group, column: Column, over
     from hydra import compose
     from hydra.errors import HydraException
 
-    why = " ".join(str(e).split("\nConfig search path")[0].split())   # one line, without Hydra's search path
+    why = " ".join(str(e).split("\nConfig search path")[0].split())  # one line, without Hydra's search path
     where = f"group {group.name}, column {column.key}"
     if overrides:
         try:
@@ -286,16 +320,18 @@ def _compose_error(e: Exception, manifest: Manifest, group, column: Column, over
     return ManifestError(manifest.path, f"{where}: {why}")
 
 
-def _averages(manifest, set_cells: list[list[Cell]], published, n_boot, level, seed,
-              row_id: tuple[str, ...]) -> list[Cell]:
+def _averages(
+    manifest, set_cells: list[list[Cell]], published, n_boot, level, seed, row_id: tuple[str, ...]
+) -> list[Cell]:
     """One average cell per column over the given set rows: the mean of the set values (each set
     weighs the same, as in the paper), its interval resampling meshes within every set. `row_id`
     (kind, group, label) with the column key seeds each cell's bootstrap."""
     out = []
     for j, column in enumerate(manifest.columns):
         members = [cells[j] for cells in set_cells]
-        cell = Cell(column, published[j], members=members if column.overrides is not None else [],
-                    budget=members[0].budget)
+        cell = Cell(
+            column, published[j], members=members if column.overrides is not None else [], budget=members[0].budget
+        )
         if cell.status == "ok":
             cell.value = float(np.mean([m.value for m in members]))
             cell.ci = bootstrap_ci([m.accs for m in members], n_boot, level, cell_rng(seed, *row_id, column.key))

@@ -21,8 +21,13 @@ def _num(v: float | None, signed: bool = False) -> str:
     return "—" if v is None else f"{v:+.2f}" if signed else f"{v:.2f}"
 
 
-def _ours(cell: Cell, ok: str = "{v:.2f} [{lo:.2f}, {hi:.2f}]", missing: str = "{status}: {why}",
-          published: str = "—", escape=str) -> str:
+def _ours(
+    cell: Cell,
+    ok: str = "{v:.2f} [{lo:.2f}, {hi:.2f}]",
+    missing: str = "{status}: {why}",
+    published: str = "—",
+    escape=str,
+) -> str:
     """The reproduced part of a cell in one format's markup: `ok` formats a value and its interval,
     `missing` what an incomplete or unavailable cell lacks, `published` stands for a published-only column."""
     if cell.status == "ok":
@@ -35,11 +40,15 @@ def _ours(cell: Cell, ok: str = "{v:.2f} [{lo:.2f}, {hi:.2f}]", missing: str = "
 def header_lines(table: Table) -> list[str]:
     m = table.manifest
     budgets = "; ".join(f"{b} ({table.budget_text.get(b, '?')})" for b in table.budgets)
-    lines = [m.title, f"Published: {m.source}" if m.source else "",
-             f"Budget: {budgets or '—'}; cell = mean accuracy (%) over all test meshes of all folds "
-             f"({METRIC_TEXT[table.metric]}), [{100 * table.level:.0f} % bootstrap interval over test meshes]; "
-             f"Δ = reproduced − published",
-             f"Overrides: {' '.join(table.overrides)}" if table.overrides else "", m.note]
+    lines = [
+        m.title,
+        f"Published: {m.source}" if m.source else "",
+        f"Budget: {budgets or '—'}; cell = mean accuracy (%) over all test meshes of all folds "
+        f"({METRIC_TEXT[table.metric]}), [{100 * table.level:.0f} % bootstrap interval over test meshes]; "
+        f"Δ = reproduced − published",
+        f"Overrides: {' '.join(table.overrides)}" if table.overrides else "",
+        m.note,
+    ]
     return [line for line in lines if line]
 
 
@@ -52,8 +61,14 @@ def _md_cell(cell: Cell) -> str:
 def markdown(table: Table) -> str:
     """One column per method; each cell `reproduced [CI] / published (Δ)` (the parts that exist)."""
     cols = table.columns
-    out = [f"**{header_lines(table)[0]}**", "", *[f"{line}  " for line in header_lines(table)[1:]], "",
-           "| Set | " + " | ".join(c.label for c in cols) + " |", "|---|" + "---|" * len(cols)]
+    out = [
+        f"**{header_lines(table)[0]}**",
+        "",
+        *[f"{line}  " for line in header_lines(table)[1:]],
+        "",
+        "| Set | " + " | ".join(c.label for c in cols) + " |",
+        "|---|" + "---|" * len(cols),
+    ]
     for row in table.rows:
         label = row.label if row.kind == "set" else f"**{row.label}**"
         out.append(f"| {label} | " + " | ".join(_md_cell(c) for c in row.cells) + " |")
@@ -64,16 +79,53 @@ def csv_text(table: Table) -> str:
     """Long form, one line per cell (averages included): everything the other formats show."""
     buf = io.StringIO()
     w = csv.writer(buf)
-    w.writerow(["group", "row", "kind", "column", "label", "status", "reproduced", "ci_low", "ci_high", "published",
-                "delta", "n_meshes", "folds", "folds_missing", "budget", "why", "category", "run_ids"])
+    w.writerow(
+        [
+            "group",
+            "row",
+            "kind",
+            "column",
+            "label",
+            "status",
+            "reproduced",
+            "ci_low",
+            "ci_high",
+            "published",
+            "delta",
+            "n_meshes",
+            "folds",
+            "folds_missing",
+            "budget",
+            "why",
+            "category",
+            "run_ids",
+        ]
+    )
     f = lambda v: "" if v is None else f"{v:.4f}"
     for row in table.rows:
         for c in row.cells:
-            w.writerow([row.group, row.label, row.kind, c.column.key, c.column.label, c.status, f(c.value),
-                        f(c.ci and c.ci[0]), f(c.ci and c.ci[1]), f(c.published), f(c.delta), c.n_meshes,
-                        c.folds, " ".join(map(str, c.missing)), c.budget or "",
-                        c.why() if c.status in ("incomplete", "unavailable") else "", c.category or "",
-                        " ".join(c.run_ids)])
+            w.writerow(
+                [
+                    row.group,
+                    row.label,
+                    row.kind,
+                    c.column.key,
+                    c.column.label,
+                    c.status,
+                    f(c.value),
+                    f(c.ci and c.ci[0]),
+                    f(c.ci and c.ci[1]),
+                    f(c.published),
+                    f(c.delta),
+                    c.n_meshes,
+                    c.folds,
+                    " ".join(map(str, c.missing)),
+                    c.budget or "",
+                    c.why() if c.status in ("incomplete", "unavailable") else "",
+                    c.category or "",
+                    " ".join(c.run_ids),
+                ]
+            )
     return buf.getvalue()
 
 
@@ -87,18 +139,25 @@ def latex(table: Table) -> str:
     """booktabs tabular: per method three columns, ours (with its interval), published, Δ."""
     cols = table.columns
     lines = ["% " + line for line in header_lines(table)]
-    lines += [r"\begin{tabular}{l" + "rrr" * len(cols) + "}", r"\toprule",
-              " & " + " & ".join(rf"\multicolumn{{3}}{{c}}{{{_tex(c.label)}}}" for c in cols) + r" \\",
-              "".join(rf"\cmidrule(lr){{{2 + 3 * i}-{4 + 3 * i}}}" for i in range(len(cols))),
-              "Set & " + " & ".join(["ours", "paper", r"$\Delta$"] * len(cols)) + r" \\", r"\midrule"]
+    lines += [
+        r"\begin{tabular}{l" + "rrr" * len(cols) + "}",
+        r"\toprule",
+        " & " + " & ".join(rf"\multicolumn{{3}}{{c}}{{{_tex(c.label)}}}" for c in cols) + r" \\",
+        "".join(rf"\cmidrule(lr){{{2 + 3 * i}-{4 + 3 * i}}}" for i in range(len(cols))),
+        "Set & " + " & ".join(["ours", "paper", r"$\Delta$"] * len(cols)) + r" \\",
+        r"\midrule",
+    ]
     for row in table.rows:
         if row.kind != "set":
             lines.append(r"\midrule")
         parts = []
         for c in row.cells:
             ours = _ours(c, r"{v:.2f}\,{{\scriptsize[{lo:.2f}, {hi:.2f}]}}", r"\textit{{{status}: {why}}}", "--", _tex)
-            parts += [ours, "--" if c.published is None else f"{c.published:.2f}",
-                      "--" if c.delta is None else f"{c.delta:+.2f}"]
+            parts += [
+                ours,
+                "--" if c.published is None else f"{c.published:.2f}",
+                "--" if c.delta is None else f"{c.delta:+.2f}",
+            ]
         label = _tex(row.label) if row.kind == "set" else rf"\textbf{{{_tex(row.label)}}}"
         lines.append(f"{label} & " + " & ".join(parts) + r" \\")
     lines += [r"\bottomrule", r"\end{tabular}"]
@@ -115,18 +174,22 @@ def html_text(table: Table) -> str:
     for row in table.rows:
         tds = []
         for c in row.cells:
-            ours = _ours(c, "{v:.2f} <small>[{lo:.2f}, {hi:.2f}]</small>", '<i class="{status}">{status}: {why}</i>',
-                         escape=e)
+            ours = _ours(
+                c, "{v:.2f} <small>[{lo:.2f}, {hi:.2f}]</small>", '<i class="{status}">{status}: {why}</i>', escape=e
+            )
             tds.append(f"<td>{ours}</td><td>{_num(c.published)}</td><td>{_num(c.delta, True)}</td>")
         cls = "" if row.kind == "set" else ' class="average"'
         body.append(f"<tr{cls}><th>{e(row.label)}</th>{''.join(tds)}</tr>")
     notes = "".join(f"<p>{e(line)}</p>" for line in header_lines(table)[1:])
-    return (f"<!doctype html>\n<html><head><meta charset=\"utf-8\"><title>{e(table.manifest.name)}</title>\n"
-            "<style>table{border-collapse:collapse}td,th{border:1px solid #ccc;padding:2px 6px;text-align:right}"
-            "tr.average{font-weight:bold}i{color:#a00}</style></head><body>\n"
-            f"<h2>{e(table.manifest.title)}</h2>{notes}\n"
-            f"<table><tr><th rowspan=\"2\">Set</th>{head}</tr><tr>{sub}</tr>\n"
-            + "\n".join(body) + "\n</table></body></html>\n")
+    return (
+        f'<!doctype html>\n<html><head><meta charset="utf-8"><title>{e(table.manifest.name)}</title>\n'
+        "<style>table{border-collapse:collapse}td,th{border:1px solid #ccc;padding:2px 6px;text-align:right}"
+        "tr.average{font-weight:bold}i{color:#a00}</style></head><body>\n"
+        f"<h2>{e(table.manifest.title)}</h2>{notes}\n"
+        f'<table><tr><th rowspan="2">Set</th>{head}</tr><tr>{sub}</tr>\n'
+        + "\n".join(body)
+        + "\n</table></body></html>\n"
+    )
 
 
 def comparison_figure(table: Table):
@@ -141,8 +204,12 @@ def comparison_figure(table: Table):
     ax, bx = fig.subplots(1, 2, width_ratios=[1, 2])
     lo, hi = 100.0, 0.0
     for c in cols:
-        pts = [(x.published, x.value, x.ci) for r in sets for x in r.cells
-               if x.column.key == c.key and x.status == "ok" and x.published is not None]
+        pts = [
+            (x.published, x.value, x.ci)
+            for r in sets
+            for x in r.cells
+            if x.column.key == c.key and x.status == "ok" and x.published is not None
+        ]
         if pts:
             p, v, ci = map(np.array, zip(*pts))
             ax.errorbar(p, v, yerr=np.abs(ci.T - v), fmt="o", ms=4, color=colors[c.key], capsize=2)
@@ -150,10 +217,17 @@ def comparison_figure(table: Table):
     if hi > lo:
         pad = 0.05 * (hi - lo) + 0.2
         ax.plot([lo - pad, hi + pad], [lo - pad, hi + pad], "k--", lw=0.8, label="y = x")
-        ax.legend(fontsize=7, loc="upper left")   # the columns' colours: the figure's legend
+        ax.legend(fontsize=7, loc="upper left")  # the columns' colours: the figure's legend
     else:
-        ax.text(0.5, 0.5, "no cell has both a reproduced\nand a published number", ha="center", va="center",
-                transform=ax.transAxes, fontsize=8)
+        ax.text(
+            0.5,
+            0.5,
+            "no cell has both a reproduced\nand a published number",
+            ha="center",
+            va="center",
+            transform=ax.transAxes,
+            fontsize=8,
+        )
     ax.set(xlabel="published accuracy (%)", ylabel="reproduced accuracy (%)", title="reproduced vs published")
     ax.title.set_fontsize(9)
     width = 0.8 / max(1, len(cols))
@@ -171,7 +245,7 @@ def comparison_figure(table: Table):
     bx.set_xticks(x, [r.label for r in sets], rotation=60, ha="right", fontsize=7)
     bx.set(ylabel="accuracy (%)", title="per set: bars reproduced, black ticks published")
     bx.title.set_fontsize(9)
-    if cols:   # below both panels, so that it hides no bar
+    if cols:  # below both panels, so that it hides no bar
         handles, labels = bx.get_legend_handles_labels()
         fig.legend(handles, labels, loc="outside lower center", ncols=min(4, len(cols)), fontsize=7)
     fig.suptitle(f"{table.manifest.name} (budget {', '.join(table.budgets) or '—'})", fontsize=9)
@@ -191,8 +265,13 @@ def write_report(table: Table, out_dir: str | Path) -> list[Path]:
     """Write every format into out_dir (created); each file is written whole or not at all."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    contents = {"table.md": markdown(table), "table.tex": latex(table), "table.html": html_text(table),
-                "table.csv": csv_text(table), "comparison.png": png_bytes(comparison_figure(table))}
+    contents = {
+        "table.md": markdown(table),
+        "table.tex": latex(table),
+        "table.html": html_text(table),
+        "table.csv": csv_text(table),
+        "comparison.png": png_bytes(comparison_figure(table)),
+    }
     paths = []
     for name in FILES:
         path, tmp = out / name, out / f".{name}.tmp"

@@ -6,8 +6,8 @@ Arrays are (faces, branches, features) float32: row u holds X^1(u), ..., X^B(u).
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, field
-from typing import Iterator
 
 import numpy as np
 import pytorch_lightning as pl
@@ -41,11 +41,15 @@ class FeatureSource:
     def prepare(self, mesh_ids, workers: int = 2) -> int:
         """Compute (in parallel) the features the cache lacks for `mesh_ids`; returns how many meshes."""
         cache = FeatureCache(self.cache_root)
-        missing = [m for m in mesh_ids
-                   if not self.features.cached(self.mesh(m).content_hash, cache)]
+        missing = [m for m in mesh_ids if not self.features.cached(self.mesh(m).content_hash, cache)]
         if missing:
-            compute_dataset(self.dataset, self.features, self.cache_root, [(self.category, m) for m in missing],
-                            workers=min(workers, len(missing)))
+            compute_dataset(
+                self.dataset,
+                self.features,
+                self.cache_root,
+                [(self.category, m) for m in missing],
+                workers=min(workers, len(missing)),
+            )
         return len(missing)
 
     def load(self, mesh_id: str) -> tuple[Mesh, list[np.ndarray]]:
@@ -75,10 +79,10 @@ class Standardiser:
 
 @dataclass
 class TrainSet:
-    X: np.ndarray            # (n, branches, features) float32, standardised
-    y: np.ndarray            # (n,) int64
+    X: np.ndarray  # (n, branches, features) float32, standardised
+    y: np.ndarray  # (n,) int64
     standardiser: Standardiser
-    mesh_faces: int          # faces of the training meshes before sampling
+    mesh_faces: int  # faces of the training meshes before sampling
 
 
 def sample_faces(n_faces: int, per_mesh: int | None, rng: np.random.Generator) -> np.ndarray:

@@ -33,11 +33,11 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class FoldPredictions:
-    meshes: list[Mesh]                 # the test meshes, in fold order
-    probabilities: list[np.ndarray]    # per mesh (faces, classes) float32
-    timings: dict[str, float] = field(default_factory=dict)   # seconds: features, train, predict
-    counts: dict[str, int] = field(default_factory=dict)      # train samples, train/test faces
-    parts: dict[str, object] = field(default_factory=dict)    # the fitted model's parts by stage name
+    meshes: list[Mesh]  # the test meshes, in fold order
+    probabilities: list[np.ndarray]  # per mesh (faces, classes) float32
+    timings: dict[str, float] = field(default_factory=dict)  # seconds: features, train, predict
+    counts: dict[str, int] = field(default_factory=dict)  # train samples, train/test faces
+    parts: dict[str, object] = field(default_factory=dict)  # the fitted model's parts by stage name
 
 
 def build_net(net_cfg, n_features: int, n_classes: int, branches: int) -> torch.nn.Module:
@@ -59,8 +59,9 @@ def fit_net(train: TrainSet, n_classes: int, model_cfg, budget, trainer_cfg, see
 FITTERS = {"net": fit_net, "autoencoder": fit_autoencoder, "forest": fit_forest}
 
 
-def fit_predict(source: FeatureSource, fold: Fold, model_cfg, budget, trainer_cfg, seed: int,
-                workers: int = 2, logger=None) -> FoldPredictions:
+def fit_predict(
+    source: FeatureSource, fold: Fold, model_cfg, budget, trainer_cfg, seed: int, workers: int = 2, logger=None
+) -> FoldPredictions:
     """Features (from the cache or computed), the model fitted on the fold's training meshes as the
     budget says, then class probabilities for every face of every test mesh."""
     kind = model_cfg.get("kind", "net")
@@ -72,8 +73,14 @@ def fit_predict(source: FeatureSource, fold: Fold, model_cfg, budget, trainer_cf
     train = build_train(source, fold.train, budget.faces_per_mesh, seed)
     timings["features"] = time.perf_counter() - t0
     n_classes = len(source.dataset.label_names(source.category))
-    log.info("fold %d: %d training faces sampled from %d (%d meshes), %d classes",
-             fold.index, len(train.y), train.mesh_faces, len(fold.train), n_classes)
+    log.info(
+        "fold %d: %d training faces sampled from %d (%d meshes), %d classes",
+        fold.index,
+        len(train.y),
+        train.mesh_faces,
+        len(fold.train),
+        n_classes,
+    )
 
     pl.seed_everything(seed, workers=True, verbose=False)
     t0 = time.perf_counter()
@@ -86,6 +93,10 @@ def fit_predict(source: FeatureSource, fold: Fold, model_cfg, budget, trainer_cf
         meshes.append(mesh)
         probabilities.append(fitted.predict_proba(X))
     timings["predict"] = time.perf_counter() - t0
-    counts = {"train_samples": len(train.y), "train_faces": train.mesh_faces,
-              "test_faces": sum(m.n_faces for m in meshes), "epochs": fitted.epochs}
+    counts = {
+        "train_samples": len(train.y),
+        "train_faces": train.mesh_faces,
+        "test_faces": sum(m.n_faces for m in meshes),
+        "epochs": fitted.epochs,
+    }
     return FoldPredictions(meshes, probabilities, timings, counts, fitted.parts)

@@ -16,8 +16,15 @@ def log_space_lr(epoch: int, epochs: int, lr_start: float, lr_end: float) -> flo
 
 
 class Segmenter(pl.LightningModule):
-    def __init__(self, net: nn.Module, epochs: int, lr_start: float = 1e-2, lr_end: float = 1e-4,
-                 momentum: float = 0.9, weight_decay: float = 0.0):
+    def __init__(
+        self,
+        net: nn.Module,
+        epochs: int,
+        lr_start: float = 1e-2,
+        lr_end: float = 1e-4,
+        momentum: float = 0.9,
+        weight_decay: float = 0.0,
+    ):
         super().__init__()
         self.net = net
         self.epochs, self.lr_start, self.lr_end = int(epochs), float(lr_start), float(lr_end)
@@ -38,9 +45,14 @@ class Segmenter(pl.LightningModule):
         self.log("lr", self.optimizers().param_groups[0]["lr"], on_step=False, on_epoch=True)
 
     def configure_optimizers(self):
-        opt = torch.optim.SGD(self.parameters(), lr=self.lr_start, momentum=self.momentum, weight_decay=self.weight_decay)
+        opt = torch.optim.SGD(
+            self.parameters(), lr=self.lr_start, momentum=self.momentum, weight_decay=self.weight_decay
+        )
         factor = lambda epoch: log_space_lr(epoch, self.epochs, self.lr_start, self.lr_end) / self.lr_start  # noqa: E731
-        return {"optimizer": opt, "lr_scheduler": {"scheduler": torch.optim.lr_scheduler.LambdaLR(opt, factor), "interval": "epoch"}}
+        return {
+            "optimizer": opt,
+            "lr_scheduler": {"scheduler": torch.optim.lr_scheduler.LambdaLR(opt, factor), "interval": "epoch"},
+        }
 
     @torch.no_grad()
     def predict_proba(self, X: np.ndarray, batch_size: int = 2048) -> np.ndarray:
@@ -48,8 +60,10 @@ class Segmenter(pl.LightningModule):
         was_training = self.training
         self.eval()
         try:
-            out = [torch.softmax(self.net(torch.from_numpy(X[i : i + batch_size]).to(self.device)), dim=1).cpu()
-                   for i in range(0, len(X), batch_size)]
+            out = [
+                torch.softmax(self.net(torch.from_numpy(X[i : i + batch_size]).to(self.device)), dim=1).cpu()
+                for i in range(0, len(X), batch_size)
+            ]
         finally:
             self.train(was_training)
         return torch.cat(out).numpy().astype(np.float32, copy=False)

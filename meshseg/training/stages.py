@@ -12,8 +12,8 @@ fine-tuning's `train_loss` as for the CNN).
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 import pytorch_lightning as pl
@@ -30,16 +30,24 @@ from meshseg.training.module import Segmenter
 
 @dataclass
 class Fitted:
-    parts: dict[str, object]                          # trained parts by stage name (ae1, ae2, net, forest, ...)
+    parts: dict[str, object]  # trained parts by stage name (ae1, ae2, net, forest, ...)
     predict_proba: Callable[[np.ndarray], np.ndarray]  # standardised inputs (n, 1, d) -> (n, classes) float32
-    epochs: int                                       # passes over the training faces, all network stages
+    epochs: int  # passes over the training faces, all network stages
 
 
 def make_trainer(trainer_cfg, epochs: int, logger=None) -> pl.Trainer:
-    return pl.Trainer(max_epochs=int(epochs), accelerator=trainer_cfg.accelerator, devices=trainer_cfg.devices,
-                      precision=trainer_cfg.precision, logger=logger or False, enable_checkpointing=False,
-                      enable_progress_bar=trainer_cfg.progress_bar, enable_model_summary=False,
-                      num_sanity_val_steps=0, log_every_n_steps=1)
+    return pl.Trainer(
+        max_epochs=int(epochs),
+        accelerator=trainer_cfg.accelerator,
+        devices=trainer_cfg.devices,
+        precision=trainer_cfg.precision,
+        logger=logger or False,
+        enable_checkpointing=False,
+        enable_progress_bar=trainer_cfg.progress_bar,
+        enable_model_summary=False,
+        num_sanity_val_steps=0,
+        log_every_n_steps=1,
+    )
 
 
 def train_stage(module: pl.LightningModule, data: TrainSet, budget, trainer_cfg, seed: int, logger=None) -> None:
@@ -84,11 +92,20 @@ class Reconstruction(pl.LightningModule):
     of the codes), Adam with a constant learning rate. Logs `<stage>_loss` per epoch (and `<stage>_mse`
     when the sparsity penalty is on)."""
 
-    def __init__(self, autoencoder: Autoencoder, stage: str, lr: float = 1e-3, weight_decay: float = 0.0,
-                 sparsity_weight: float = 0.0, sparsity_target: float = 0.05):
+    def __init__(
+        self,
+        autoencoder: Autoencoder,
+        stage: str,
+        lr: float = 1e-3,
+        weight_decay: float = 0.0,
+        sparsity_weight: float = 0.0,
+        sparsity_target: float = 0.05,
+    ):
         super().__init__()
         if sparsity_weight > 0 and autoencoder.activation != "sigmoid":
-            raise ConfigError(f"sparsity_weight > 0 needs sigmoid codes in (0, 1), got activation {autoencoder.activation!r}")
+            raise ConfigError(
+                f"sparsity_weight > 0 needs sigmoid codes in (0, 1), got activation {autoencoder.activation!r}"
+            )
         self.autoencoder, self.stage = autoencoder, stage
         self.lr, self.weight_decay = float(lr), float(weight_decay)
         self.sparsity_weight, self.sparsity_target = float(sparsity_weight), float(sparsity_target)
@@ -110,17 +127,21 @@ class Reconstruction(pl.LightningModule):
         return torch.optim.Adam(self.parameters(), lr=self.lr, weight_decay=self.weight_decay)
 
 
-def pretrain_autoencoders(train: TrainSet, cfg, budget, trainer_cfg, seed: int,
-                          logger=None) -> tuple[list[Autoencoder], np.ndarray]:
+def pretrain_autoencoders(
+    train: TrainSet, cfg, budget, trainer_cfg, seed: int, logger=None
+) -> tuple[list[Autoencoder], np.ndarray]:
     """Autoencoders of cfg.hidden sizes, each trained on the previous one's codes (the first on the
     inputs); returns them and the last one's codes of the training faces."""
     device, batch = device_of(trainer_cfg), int(trainer_cfg.predict_batch_size)
     autoencoders, X = [], train.X
     for i, hidden in enumerate(cfg.hidden, start=1):
         ae = Autoencoder(int(np.prod(X.shape[1:])), hidden, cfg.activation, cfg.decoder_activation)
-        module = Reconstruction(ae, f"ae{i}", sparsity_weight=cfg.sparsity_weight,
-                                sparsity_target=cfg.sparsity_target, **cfg.optim)
-        train_stage(module, TrainSet(X, train.y, train.standardiser, train.mesh_faces), budget, trainer_cfg, seed, logger)
+        module = Reconstruction(
+            ae, f"ae{i}", sparsity_weight=cfg.sparsity_weight, sparsity_target=cfg.sparsity_target, **cfg.optim
+        )
+        train_stage(
+            module, TrainSet(X, train.y, train.standardiser, train.mesh_faces), budget, trainer_cfg, seed, logger
+        )
         X = transform(ae.encoder, X.reshape(len(X), -1), batch, device)
         autoencoders.append(ae)
     return autoencoders, X
@@ -149,7 +170,9 @@ def fit_autoencoder(train: TrainSet, n_classes: int, model_cfg, budget, trainer_
 
     net = StackedAutoencoderClassifier(encoders, codes.shape[1], n_classes)
     softmax = StageSegmenter(net.softmax, budget.epochs, "softmax_", **model_cfg.softmax.optim)
-    train_stage(softmax, TrainSet(codes, train.y, train.standardiser, train.mesh_faces), budget, trainer_cfg, seed, logger)
+    train_stage(
+        softmax, TrainSet(codes, train.y, train.standardiser, train.mesh_faces), budget, trainer_cfg, seed, logger
+    )
     finetune = StageSegmenter(net, budget.epochs, "", **model_cfg.finetune.optim)
     train_stage(finetune, train, budget, trainer_cfg, seed, logger)
     finetune.to(device)
