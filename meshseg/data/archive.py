@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import hashlib
+import lzma
 import os
 import shutil
 import tarfile
 import tempfile
+import time
 import zipfile
+import zlib
 from pathlib import Path
 
 from meshseg.data.mesh import MeshDataError
@@ -25,6 +28,27 @@ def file_sha256(path: Path, chunk: int = 1 << 20) -> str:
         while block := fh.read(chunk):
             h.update(block)
     return h.hexdigest()
+
+
+def remove_stale_partials(cache: Path, max_age_s: float = 6 * 3600) -> list[Path]:
+    """Delete the half-unpacked folders that killed unpacks left in `cache`: those whose process (its
+    pid is in the name) is gone, and unnamed ones older than `max_age_s`. Returns what was removed."""
+    removed = []
+    for d in cache.glob(".*.partial-*"):
+        owner = d.name.rpartition(".partial-")[2].split("-")[0]
+        if owner.isdigit():
+            try:
+                os.kill(int(owner), 0)
+                continue  # an unpack still running
+            except ProcessLookupError:
+                pass
+            except PermissionError:
+                continue
+        elif time.time() - d.stat().st_mtime < max_age_s:
+            continue
+        shutil.rmtree(d, ignore_errors=True)
+        removed.append(d)
+    return removed
 
 
 def resolve_root(root: str | os.PathLike, cache_dir: str | os.PathLike) -> Path:
@@ -47,7 +71,8 @@ def resolve_root(root: str | os.PathLike, cache_dir: str | os.PathLike) -> Path:
     final = cache / f"{stem}-{file_sha256(root)[:16]}"
     if final.is_dir():
         return final
-    tmp = Path(tempfile.mkdtemp(dir=cache, prefix=f".{final.name}.partial-"))
+    remove_stale_partials(cache)
+    tmp = Path(tempfile.mkdtemp(dir=cache, prefix=f".{final.name}.partial-{os.getpid()}-"))
     try:
         try:
             if root.name.lower().endswith(".zip"):
@@ -56,8 +81,8 @@ def resolve_root(root: str | os.PathLike, cache_dir: str | os.PathLike) -> Path:
             else:
                 with tarfile.open(root) as t:
                     t.extractall(tmp, filter="data")  # refuses absolute paths and '..'
-        except (tarfile.TarError, zipfile.BadZipFile, EOFError, OSError, ValueError) as e:
-            raise MeshDataError(root, f"cannot unpack archive: {e}") from None
+        except (tarfile.TarError, zipfile.BadZipFile, EOFError, OSError, ValueError, lzma.LZMAError, zlib.error) as e:
+            raise MeshDataError(root, f"cannot unpack archive (corrupt or truncated?): {e}") from None
         try:
             os.rename(tmp, final)
         except OSError:

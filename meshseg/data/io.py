@@ -79,6 +79,12 @@ def read_off(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
         raise MeshDataError(path, f"cannot read: {e.strerror}") from None
     lines = data.split(b"\n")
     nv, nf, body = _parse_off_header(lines, path)
+    if 6 * nv + 8 * nf > len(data):  # "x y z\n" and "3 i j k\n" take at least 6 and 8 bytes
+        raise MeshDataError(
+            path,
+            f"header declares {nv} vertices and {nf} faces, more than the file's "
+            f"{len(data)} bytes can hold (truncated file or bad header?)",
+        )
     # Fast path: one record per line, plain "x y z" and "3 i j k"; numpy parses each block in C.
     try:
         v = np.fromstring(b" ".join(lines[body : body + nv]), sep=" ")
@@ -262,11 +268,11 @@ def read_seg(path: str | os.PathLike, n_faces: int | None = None) -> np.ndarray:
     """Read a COSEG `.seg`: one integer label per face, in face order."""
     path = Path(path)
     lines = _read_lines(path)
-    try:
-        seg = np.array([int(t) for t in lines], np.int64)
-    except ValueError:
-        bad = next(i for i, t in enumerate(lines) if not t.strip().lstrip("+-").isdigit())
-        raise MeshDataError(path, f"label {bad + 1} is not an integer: {lines[bad][:40]!r}") from None
+    for i, t in enumerate(lines):
+        if not re.fullmatch(r"[+-]?\d{1,9}", t.strip()):  # at most 9 digits: no label needs more
+            problem = "is not an integer" if not re.fullmatch(r"[+-]?\d+", t.strip()) else "is out of range"
+            raise MeshDataError(path, f"label {i + 1} {problem}: {t.strip()[:40]!r}")
+    seg = np.array([int(t) for t in lines], np.int64)
     if n_faces is not None and len(seg) != n_faces:
         raise MeshDataError(path, f"{len(seg)} labels for a mesh of {n_faces} faces")
     if (seg < 0).any():
