@@ -23,6 +23,7 @@ from meshseg import CONF_DIR
 from meshseg.data.datasets import MeshDataset, build_dataset
 from meshseg.data.splits import Fold, folds_for, split_name
 from meshseg.errors import ConfigError, MeshsegError
+from meshseg.features.sets import FeatureSet
 from meshseg.refine import check_refine
 
 log = logging.getLogger("meshseg.run")
@@ -84,6 +85,7 @@ def check_knobs(cfg: DictConfig) -> None:
     if not (isinstance(cfg.seed, int) and isinstance(cfg.workers, int) and cfg.workers >= 1):
         raise ConfigError(f"seed={cfg.seed} must be an integer and workers={cfg.workers} an integer >= 1")
     check_refine(cfg.refine)  # before any fold trains, not after
+    FeatureSet.from_config(cfg.features)  # unknown groups and bad group parameters
     t = cfg.tracking
     if not (float(t.heartbeat_s) > 0 and float(t.lease_timeout_s) > 2 * float(t.heartbeat_s)):
         raise ConfigError(
@@ -133,7 +135,7 @@ def refine_features(mesh, cfg: DictConfig):
     if cfg.refine.name != "graphcut_agd":
         return None
     from meshseg.features.cache import FeatureCache
-    from meshseg.features.sets import FeatureSet, parse_entry
+    from meshseg.features.sets import parse_entry
 
     params = dict((cfg.features.get("params") or {}).get("agd") or {})  # the run's AGD settings, if it set any
     agd = FeatureSet("agd", (parse_entry("agd"),), {"agd": params})
@@ -163,7 +165,6 @@ def run(cfg: DictConfig) -> float:
     Returns the fold's test accuracy (area-weighted, after refinement)."""
     import torch
 
-    from meshseg.features.sets import FeatureSet
     from meshseg.metrics import mesh_scores
     from meshseg.models.cnn1d import tune_glibc_malloc
     from meshseg.refine import refine_labels

@@ -77,3 +77,68 @@ def test_stale_partial_unpacks_are_removed_and_live_ones_kept(tmp_path):
     root = resolve_root(path, tmp_path)
     assert (root / "db" / "a.off").is_file() and not dead_again.exists()
     assert np.isclose(read_off(root / "db" / "a.off")[0].sum(), 2.0)
+
+
+def test_a_cache_dir_that_is_a_file_is_one_error(tmp_path):
+    from meshseg.errors import ConfigError
+    from meshseg.features.cache import FeatureCache
+
+    (tmp_path / "cache").write_text("not a folder")
+    with pytest.raises(ConfigError, match=r"paths.cache_dir=.*cache is a file; it must be a folder"):
+        FeatureCache(tmp_path / "cache")
+
+
+def test_feature_saving_survives_its_folder_vanishing(tmp_path, monkeypatch):
+    """A user clearing the cache while features are saved: the folder is made again, the file written."""
+    import shutil
+    import tempfile
+
+    from meshseg.features.cache import FeatureCache
+
+    real = tempfile.mkstemp
+    calls = []
+
+    def vanishing(*args, **kwargs):
+        calls.append(kwargs["dir"])
+        if len(calls) == 1:
+            shutil.rmtree(kwargs["dir"])  # gone between mkdir and the temporary file
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(tempfile, "mkstemp", vanishing)
+    path = tmp_path / "features" / "gc" / "abc.npz"
+    FeatureCache._save(path, np.ones((4, 1), np.float32))
+    assert len(calls) == 2 and np.load(path)["x"].shape == (4, 1)
+    assert [p.name for p in path.parent.iterdir()] == ["abc.npz"]  # no temporary file left
+
+
+def test_group_counts_are_checked_before_any_work():
+    from meshseg.errors import ConfigError
+    from meshseg.features.registry import get_group
+
+    for value in (0, -3, 2.5, "many"):
+        with pytest.raises(ConfigError, match=rf"features.params.agd.n_samples={value} is not allowed"):
+            get_group("agd").params({"n_samples": value})
+    assert get_group("agd").params({"n_samples": 64}) == {"n_samples": 64}
+
+
+def test_features_out_that_is_a_folder_is_refused_before_computing(tmp_path):
+    from conftest import REPO
+
+    mesh = tmp_path / "m.off"
+    mesh.write_text("OFF\n4 4 0\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 2 1\n3 0 1 3\n3 0 3 2\n3 1 2 3\n")
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "meshseg.features",
+            f"mesh={mesh}",
+            f"out={tmp_path}",
+            f"paths.cache_dir={tmp_path}/cache",
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert r.returncode == 1 and r.stderr.strip() == f"error: out={tmp_path} is a folder; name the .npy file to write"
+    assert not (tmp_path / "cache").exists()  # nothing was computed

@@ -87,6 +87,6 @@ class MeshsegSweeper(BasicSweeper):
             n = sum(len(b) for b in returns)
             sys.exit(
                 "\n".join(lines) + f"\nsweep: {len(failed)} of {n} jobs failed "
-                f"({time.perf_counter() - t0:.0f} s); their runs are FAILED in the store, a rerun retries them"
+                f"({time.perf_counter() - t0:.0f} s); runs they began are FAILED in the store; a rerun retries them"
             )
         return returns

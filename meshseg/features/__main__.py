@@ -39,7 +39,12 @@ def load_mesh_file(path: str) -> Mesh:
 def save_npy(path: str, X: np.ndarray) -> None:
     """Atomic .npy write: a killed run never leaves a half file under the requested name."""
     p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
+    if p.is_dir():
+        raise ConfigError(f"out={path} is a folder; name the .npy file to write")
+    try:
+        p.parent.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        raise ConfigError(f"out={path}: its folder {p.parent} cannot be created (a file is in the way)") from None
     fd, tmp = tempfile.mkstemp(dir=p.parent, prefix=f".{p.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as fh:
@@ -58,6 +63,8 @@ def main(cfg: DictConfig) -> None:
         if cfg.mesh is not None:
             if cfg.out is None:
                 raise ConfigError("mesh=FILE needs out=FILE.npy")
+            if Path(cfg.out).is_dir():  # checked before the features are computed, not after
+                raise ConfigError(f"out={cfg.out} is a folder; name the .npy file to write")
             mesh = load_mesh_file(cfg.mesh)
             t0 = time.perf_counter()
             X = fs.compute(mesh.vertices, mesh.faces, mesh.content_hash, FeatureCache(cache_root))

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from meshseg.errors import ConfigError
 from meshseg.features.registry import Group
 
 log = logging.getLogger(__name__)
@@ -88,6 +89,8 @@ class FeatureCache:
 
     def __init__(self, root: str | os.PathLike | None):
         self.root = None if root is None else Path(root).expanduser() / "features"
+        if root is not None and Path(root).expanduser().is_file():
+            raise ConfigError(f"paths.cache_dir={root} is a file; it must be a folder (or not exist yet)")
 
     def path(self, mesh_hash: str, group: Group, params: dict) -> Path:
         return self.root / group.name / f"{cache_key(mesh_hash, group, params)}.npz"
@@ -120,8 +123,19 @@ class FeatureCache:
 
     @staticmethod
     def _save(path: Path, X: np.ndarray) -> None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".tmp")
+        for attempt in range(3):  # the folder may vanish underneath us (a user clearing the cache): recreate it
+            try:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".tmp")
+                break
+            except FileNotFoundError:
+                if attempt == 2:
+                    raise
+            except (FileExistsError, NotADirectoryError):
+                raise ConfigError(
+                    f"paths.cache_dir: cannot write the feature cache under {path.parent}: "
+                    "a file stands where a folder is needed"
+                ) from None
         try:
             with os.fdopen(fd, "wb") as fh:
                 np.savez(fh, x=X)

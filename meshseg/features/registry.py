@@ -33,6 +33,14 @@ class Group:
             raise ConfigError(
                 f"feature group {self.name!r} has no parameters {unknown}; it has {sorted(self.defaults)}"
             )
+        for key, value in overrides.items():
+            default = self.defaults[key]
+            counts = isinstance(default, int) and not isinstance(default, bool) and default >= 1
+            if counts and not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+                # a count (samples, eigenpairs, rays, neighbours): 0 or a fraction would fail deep inside
+                raise ConfigError(
+                    f"features.params.{self.name}.{key}={value} is not allowed: it must be an integer >= 1"
+                )
         return {**self.defaults, **overrides}
 
     def __call__(self, V: np.ndarray, F: np.ndarray, **params) -> np.ndarray:
