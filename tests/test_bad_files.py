@@ -142,3 +142,24 @@ def test_features_out_that_is_a_folder_is_refused_before_computing(tmp_path):
     )
     assert r.returncode == 1 and r.stderr.strip() == f"error: out={tmp_path} is a folder; name the .npy file to write"
     assert not (tmp_path / "cache").exists()  # nothing was computed
+
+
+def test_a_mesh_of_one_point_is_refused_naming_its_file(tmp_path):
+    from meshseg.data.mesh import Mesh
+
+    V = np.ones((4, 3))
+    with pytest.raises(MeshDataError, match=r"flat\.off: all 4 vertices the faces use coincide"):
+        Mesh(V, np.array([[0, 1, 2], [0, 2, 3]]), source="flat.off")
+
+
+def test_a_coseg_set_without_shapes_is_named(tmp_path):
+    from meshseg.data.datasets import COSEG
+
+    for name in ("chairs", "empty"):
+        (tmp_path / name / "shapes").mkdir(parents=True)
+        (tmp_path / name / "gt").mkdir()
+    (tmp_path / "chairs" / "shapes" / "1.off").write_text("OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n")
+    ds = COSEG(str(tmp_path), str(tmp_path / "cache"))
+    assert ds.mesh_ids("chairs") == ["1"]
+    with pytest.raises(MeshDataError, match=r"empty/shapes: COSEG set 'empty' has no shapes"):
+        ds.mesh_ids("empty")

@@ -164,7 +164,11 @@ class COSEG(_FileDataset):
         self._vocab: dict[str, tuple[int, ...]] = {}
 
     def mesh_ids(self, category: str) -> list[str]:
-        return sort_ids(p.stem for p in (self._dirs[self.check_category(category)] / "shapes").glob("*.off"))
+        shapes = self._dirs[self.check_category(category)] / "shapes"
+        ids = sort_ids(p.stem for p in shapes.glob("*.off"))
+        if not ids:  # else every split fails later with a message that does not name the set
+            raise MeshDataError(shapes, f"COSEG set {category!r} has no shapes (*.off)")
+        return ids
 
     def _seg_path(self, category: str, mesh_id: str) -> Path:
         path = self._dirs[category] / "gt" / f"{mesh_id}.seg"

@@ -79,7 +79,7 @@ def read_off(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
         raise MeshDataError(path, f"cannot read: {e.strerror}") from None
     lines = data.split(b"\n")
     nv, nf, body = _parse_off_header(lines, path)
-    if 6 * nv + 8 * nf > len(data):  # "x y z\n" and "3 i j k\n" take at least 6 and 8 bytes
+    if 2 * (nv + nf) > len(data):  # every record takes 2 bytes at least: refuse before allocating for it
         raise MeshDataError(
             path,
             f"header declares {nv} vertices and {nf} faces, more than the file's "

@@ -61,6 +61,9 @@ class Mesh:
                 f"face {row} has vertex index {f[row][out[row]][0]} outside 0..{len(v) - 1} "
                 f"({out.any(axis=1).sum()} such faces)",
             )
+        used = np.unique(f)
+        if np.ptp(v[used], axis=0).max() == 0:  # every feature needs a size and a shape
+            raise MeshDataError(src, f"all {len(used)} vertices the faces use coincide: the mesh has no extent")
         object.__setattr__(self, "vertices", v)
         object.__setattr__(self, "faces", f)
         object.__setattr__(self, "label_names", tuple(self.label_names))
