@@ -29,8 +29,9 @@ import torch.nn.functional as F
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from meshseg.models.cnn1d import MultiBranchCNN1D, tune_glibc_malloc  # noqa: E402
+from meshseg.models.cnn1d import MultiBranchCNN1D  # noqa: E402
 from meshseg.models.cnn2d import ToG15CNN2D  # noqa: E402
+from meshseg.training.malloc import tune_glibc_malloc  # noqa: E402
 
 MODELS = {  # name -> (constructor, branches)
     "cnn2d (ToG15)": (lambda d, c: ToG15CNN2D(d, c), 1),

@@ -11,18 +11,19 @@ In one run it measures
 * the fp32 matmul peak: median GFLOP/s of repeated large square torch.mm (2048 on CPU, 8192 on CUDA),
   taken before and after the training measurements;
 * training samples/s of meshseg.models.cnn1d.MultiBranchCNN1D (the fast model) for each branch count, and
-  of the straightforward nn.Conv1d/nn.BatchNorm1d/nn.MaxPool1d reference (tests/test_cnn1d.py, imported from
-  there): one step = forward, cross-entropy, backward, SGD(momentum 0.9) step on a random batch. Each model
-  is timed for --seconds in --rounds alternating rounds (so background load hits both alike), each round
-  in a fresh process after warm-up steps (so neither model inherits the other's malloc state, which
-  changes the fast model's speed by 10-20 %), and the median step time is reported;
+  of the straightforward nn.Conv1d/nn.BatchNorm1d/nn.MaxPool1d network as the paper draws it
+  (meshseg.models.cnn1d.PaperCNN1D): one step = forward, cross-entropy, backward, SGD(momentum 0.9) step
+  on a random batch. Each model is timed for --seconds in --rounds alternating rounds (so background load
+  hits both alike), each round in a fresh process after warm-up steps (so neither model inherits the
+  other's malloc state, which changes the fast model's speed by 10-20 %), and the median step time is
+  reported;
 
 (about 2 minutes with the defaults) and prints one row per branch count: forward MFLOP per sample
 (flops_per_sample), samples/s, achieved
 GFLOP/s (= 3 x forward FLOPs x samples/s: forward, and backward for inputs and weights), % of the matmul
 peak, for the fast model and the reference, and the fast model's speed-up.
 
---malloc-tune calls meshseg.models.cnn1d.tune_glibc_malloc() in the timing processes: glibc's malloc then
+--malloc-tune calls meshseg.training.malloc.tune_glibc_malloc() in the timing processes: glibc's malloc then
 keeps freed memory for reuse (mmap threshold 32 MiB, trim threshold 1 GiB) instead of returning it to the
 kernel, so the tens of MiB of activations a step allocates are not faulted in and zeroed again every step.
 Setting both MALLOC_MMAP_THRESHOLD_=33554432 and MALLOC_TRIM_THRESHOLD_=1073741824 in the environment
@@ -32,7 +33,6 @@ before Python starts does the same for any process (e.g. the trainer).
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import statistics
 import subprocess
@@ -46,15 +46,8 @@ import torch.nn.functional as F
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from meshseg.models.cnn1d import MultiBranchCNN1D, flops_per_sample, tune_glibc_malloc  # noqa: E402
-
-
-def reference_class():
-    """The straightforward reference network, from its one definition in tests/test_cnn1d.py."""
-    spec = importlib.util.spec_from_file_location("_cnn1d_reference", REPO / "tests" / "test_cnn1d.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module.ReferenceMultiBranchCNN1D
+from meshseg.models.cnn1d import MultiBranchCNN1D, PaperCNN1D, flops_per_sample  # noqa: E402
+from meshseg.training.malloc import tune_glibc_malloc  # noqa: E402
 
 
 def sync(device: torch.device) -> None:
@@ -102,7 +95,7 @@ def worker(args) -> None:
         if not tune_glibc_malloc():
             raise SystemExit("--malloc-tune: glibc's mallopt is not available here")
     model_name, b = args.worker[0], int(args.worker[1])
-    Model = MultiBranchCNN1D if model_name == "fast" else reference_class()
+    Model = MultiBranchCNN1D if model_name == "fast" else PaperCNN1D
     torch.manual_seed(0)
     model = Model(args.features, args.classes, b).to(device)
     x = torch.randn(args.batch_size, b, args.features, device=device)

@@ -166,11 +166,11 @@ def run(cfg: DictConfig) -> float:
     import torch
 
     from meshseg.metrics import mesh_scores
-    from meshseg.models.cnn1d import tune_glibc_malloc
     from meshseg.refine import refine_labels
     from meshseg.tracking import Tracker, flatten, fold_identity, git_sha
     from meshseg.training.data import FeatureSource
     from meshseg.training.fit import fit_predict
+    from meshseg.training.malloc import tune_glibc_malloc
 
     if cfg.trainer.threads:
         torch.set_num_threads(int(cfg.trainer.threads))

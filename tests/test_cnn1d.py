@@ -1,7 +1,7 @@
 """The multi-branch 1D CNN (meshseg.models.cnn1d) against the paper's §3.4 and a straightforward reference.
 
-`ReferenceMultiBranchCNN1D` below is that reference: nn.Conv1d / nn.BatchNorm1d / nn.LeakyReLU /
-nn.MaxPool1d per branch in a Python loop. benchmarks/train_throughput.py imports it from here.
+The reference is `meshseg.models.cnn1d.PaperCNN1D`: nn.Conv1d / nn.BatchNorm1d / nn.LeakyReLU /
+nn.MaxPool1d per branch, as the paper draws it; the fast network must compute exactly what it does.
 """
 
 from __future__ import annotations
@@ -13,61 +13,13 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from meshseg.models.cnn1d import EVAL_CHUNK, MultiBranchCNN1D, flops_per_sample
+from meshseg.models.cnn1d import EVAL_CHUNK, MultiBranchCNN1D, PaperCNN1D, flops_per_sample
 
 # the reference's nn.Conv1d(padding="same") warns about even kernels (one test config has one)
 pytestmark = pytest.mark.filterwarnings("ignore:Using padding='same' with even kernel")
 
 
-class ReferenceMultiBranchCNN1D(nn.Module):
-    """The straightforward network, same constructor and input/output as MultiBranchCNN1D."""
-
-    def __init__(
-        self,
-        n_features: int,
-        n_classes: int,
-        branches: int = 3,
-        channels=(16, 32),
-        kernels=(15, 11),
-        hidden: int = 172,
-        negative_slope: float = 0.2,
-        dropout: float = 0.5,
-        pool: int = 2,
-    ):
-        super().__init__()
-
-        def branch() -> nn.Sequential:
-            layers, c_in = [], 1
-            for c_out, k in zip(channels, kernels):
-                layers += [
-                    nn.Conv1d(c_in, c_out, k, padding="same"),
-                    nn.BatchNorm1d(c_out),
-                    nn.LeakyReLU(negative_slope),
-                    nn.MaxPool1d(pool),
-                ]
-                c_in = c_out
-            return nn.Sequential(*layers)
-
-        self.branches = nn.ModuleList(branch() for _ in range(branches))
-        length = n_features
-        for _ in channels:
-            length //= pool
-        self.head = nn.Sequential(
-            nn.Flatten(),
-            nn.Linear(branches * channels[-1] * length, hidden),
-            nn.LeakyReLU(negative_slope),
-            nn.Dropout(dropout),
-            nn.Linear(hidden, n_classes),
-        )
-
-    def feature_maps(self, x: torch.Tensor) -> torch.Tensor:
-        return torch.cat([b(x[:, k : k + 1]) for k, b in enumerate(self.branches)], dim=1)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.head(self.feature_maps(x))
-
-
-def _pairs(fast: MultiBranchCNN1D, ref: ReferenceMultiBranchCNN1D, grads: bool = False):
+def _pairs(fast: MultiBranchCNN1D, ref: PaperCNN1D, grads: bool = False):
     """{name: (fast tensor, reference tensor)} in the documented mapping: every parameter and running
     statistic, or with grads=True every parameter's gradient."""
     get = (lambda t: t.grad) if grads else (lambda t: t)
@@ -95,7 +47,7 @@ def _pairs(fast: MultiBranchCNN1D, ref: ReferenceMultiBranchCNN1D, grads: bool =
     return out
 
 
-def copy_reference_into(fast: MultiBranchCNN1D, ref: ReferenceMultiBranchCNN1D) -> None:
+def copy_reference_into(fast: MultiBranchCNN1D, ref: PaperCNN1D) -> None:
     """Load the reference's parameters and running statistics into the fast model."""
     with torch.no_grad():
         for mine, theirs in _pairs(fast, ref).values():
@@ -121,7 +73,7 @@ CONFIGS = [
 def pair(request):
     cfg = CONFIGS[request.param]
     torch.manual_seed(0)
-    ref = ReferenceMultiBranchCNN1D(**cfg)
+    ref = PaperCNN1D(**cfg)
     fast = MultiBranchCNN1D(**cfg)
     copy_reference_into(fast, ref)
     x = torch.randn(12, cfg["branches"], cfg["n_features"]) * 2 + 0.5
@@ -172,7 +124,7 @@ def test_branch_parameters_are_distinct():
 def test_same_seed_same_init_as_reference():
     """Both draw PyTorch's default init in the same order, so one seed gives one network."""
     torch.manual_seed(3)
-    ref = ReferenceMultiBranchCNN1D(800, 8, 3)
+    ref = PaperCNN1D(800, 8, 3)
     torch.manual_seed(3)
     fast = MultiBranchCNN1D(800, 8, 3)
     for mine, theirs in _pairs(fast, ref).values():
@@ -229,7 +181,7 @@ def test_eval_mode_gradients_match_reference(pair):
 def test_eval_no_grad_in_chunks_matches_reference():
     """A no-grad eval forward on CPU runs in chunks of EVAL_CHUNK samples: the same logits as one batch."""
     torch.manual_seed(0)
-    ref = ReferenceMultiBranchCNN1D(800, 6, 3)
+    ref = PaperCNN1D(800, 6, 3)
     fast = MultiBranchCNN1D(800, 6, 3)
     copy_reference_into(fast, ref)
     x_train = torch.randn(64, 3, 800) * 3 + 1

@@ -1,311 +1,74 @@
-"""The paper's multi-branch 1D CNN (§3.4), written for training speed on a few CPU cores.
+"""The paper's multi-branch 1D CNN (George, Xie & Tam 2018, §3.4 and its figure 3).
 
-Architecture (per branch k = 1..B, each with its own parameters; branch k reads its own input X^k of length D):
+Per branch k = 1..B (each with its own parameters; branch k reads the multi-scale input X^k):
 
     Conv1d 1->16, kernel 15, "same" -> BatchNorm -> LeakyReLU(0.2) -> MaxPool 2
     Conv1d 16->32, kernel 11, "same" -> BatchNorm -> LeakyReLU(0.2) -> MaxPool 2      => 32 x D//4
 
-then depth concatenation of the branches (32·B channels x D//4) -> flatten -> Linear(32·B·(D//4) -> 172)
--> LeakyReLU(0.2) -> Dropout(0.5) -> Linear(172 -> classes), giving logits (the caller applies
-cross-entropy). Max pooling floors odd lengths, like ``nn.MaxPool1d(2)``.
+then the branches' maps concatenated depth-wise (32·B channels) -> flatten -> FC 172 -> LeakyReLU(0.2)
+-> Dropout 0.5 -> FC classes -> softmax (the training loss applies it as cross-entropy).
 
-It computes what the straightforward network of ``nn.Conv1d``/``nn.BatchNorm1d``/``nn.LeakyReLU``/
-``nn.MaxPool1d`` computes (tests/test_cnn1d.py checks logits, gradients and running statistics against
-one), about 1.8x faster on 2 CPU cores (benchmarks/train_throughput.py), by
-
-* keeping every feature map channels-last, (N, L, C) in memory, and running each convolution as a
-  ``conv2d`` on an (N, C, 1, L) channels-last view: oneDNN runs that at over half the matmul peak, and
-  batch norm and pooling on channels-last maps are several times faster than on channels-first ones;
-* asking oneDNN's backward only for the gradients needed (never the input's of the first layer) and
-  summing the bias gradient separately, which oneDNN computes slowly for these shapes;
-* pooling before the LeakyReLU (it is monotonic, so the max commutes with it: half the activation work)
-  in one autograd Function that keeps a 0/1 "first of the pair won" mask instead of int64 indices.
-
-Batch norm in train mode is PyTorch's own (``F.batch_norm`` on the channels-last view: normalises with
-the batch statistics, updates the running ones with momentum 0.1, eps 1e-5), so it behaves exactly as
-``nn.BatchNorm1d``. In eval mode it is the affine map of the running statistics, folded into the
-convolution's weight and bias; and a no-grad eval forward on CPU runs in chunks of 128 samples (the
-samples are independent then), about twice as fast as one large batch.
-
-Parameters are stacked over branches: entry [k] of each is what branch k+1's ``nn.Conv1d`` and
-``nn.BatchNorm1d`` hold in the straightforward network (``layers[i]`` is the i-th conv stage):
-
-    layers[i].weight        (B, C_out, C_in, K)   <- Conv1d.weight  (same shape)
-    layers[i].bias          (B, C_out)            <- Conv1d.bias
-    layers[i].bn_weight     (B, C_out)            <- BatchNorm1d.weight
-    layers[i].bn_bias       (B, C_out)            <- BatchNorm1d.bias
-    layers[i].running_mean  (B, C_out)  buffer    <- BatchNorm1d.running_mean
-    layers[i].running_var   (B, C_out)  buffer    <- BatchNorm1d.running_var
-    fc1, fc2                nn.Linear             <- the same layers: fc1 reads the concatenated map
-                                                     flattened channel-major (channel 32·k + c of branch k+1),
-                                                     as nn.Flatten does on (N, 32·B, D//4)
-
-Initialisation is PyTorch's default (kaiming-uniform a=sqrt(5) and the matching uniform bias for the
-convolutions and linear layers; BN weight 1, bias 0), drawn in the order a straightforward network
-draws it: branch by branch (conv1, conv2), then fc1, fc2. With the same seed the two start identical.
-
-``flops_per_sample`` counts the multiply-adds of the convolutions and linear layers (2 FLOPs each);
-a training step costs about 3x that per sample (forward, and backward for inputs and weights).
+`PaperCNN1D` below is that network in plain torch.nn layers: read it to see the method. Training uses
+`MultiBranchCNN1D` (meshseg/models/cnn1d_fast.py), which computes the same function, gradients and
+batch-norm statistics from the same initial weights, about 1.3-1.8x faster on a few CPU cores
+(tests/test_cnn1d.py checks the equivalence; benchmarks/train_throughput.py measures both).
 """
 
 from __future__ import annotations
 
-import ctypes
-import math
-import sys
-from collections.abc import Sequence
-
 import torch
-import torch.nn.functional as F
 from torch import nn
 
-MAX_BRANCHES = 4
-EVAL_CHUNK = 128  # samples per chunk of a no-grad eval-mode forward on CPU
+from meshseg.models.cnn1d_fast import EVAL_CHUNK, MAX_BRANCHES, MultiBranchCNN1D, flops_per_sample
+
+__all__ = ["PaperCNN1D", "MultiBranchCNN1D", "flops_per_sample", "EVAL_CHUNK", "MAX_BRANCHES"]
 
 
-class _Conv(torch.autograd.Function):
-    """F.conv2d (stride 1) whose backward computes only the gradients needed, the bias one by a plain sum."""
-
-    @staticmethod
-    def forward(ctx, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, padding: tuple[int, int]):
-        ctx.save_for_backward(x, weight)
-        ctx.padding = list(padding)
-        return F.conv2d(x, weight, bias, padding=padding)
-
-    @staticmethod
-    def backward(ctx, grad: torch.Tensor):
-        x, weight = ctx.saved_tensors
-        need_x, need_w, need_b = ctx.needs_input_grad[:3]
-        grad_x = grad_w = grad_b = None
-        if need_x or need_w:
-            grad_x, grad_w, _ = torch.ops.aten.convolution_backward(
-                grad, x, weight, None, [1, 1], ctx.padding, [1, 1], False, [0, 0], 1, [need_x, need_w, False]
-            )
-        if need_b:
-            grad_b = grad.permute(0, 2, 3, 1).reshape(-1, grad.shape[1]).sum(0)  # a view when channels-last
-        return grad_x, grad_w, grad_b, None
-
-
-class _MaxPool2LeakyReLU(torch.autograd.Function):
-    """LeakyReLU(max-pool by 2 over L) of an (N, L, C) map; an odd L drops the last position.
-
-    Equals nn.MaxPool1d(2)(nn.LeakyReLU(slope)(z)) for slope >= 0, gradients included: a tie sends the
-    gradient to the first of the pair, as PyTorch's max pooling does.
-    """
-
-    @staticmethod
-    def forward(ctx, z: torch.Tensor, slope: float) -> torch.Tensor:
-        length = z.shape[1]
-        pairs = z[:, : length // 2 * 2].unflatten(1, (length // 2, 2))
-        first, second = pairs[:, :, 0], pairs[:, :, 1]
-        first_won = torch.ge(first, second, out=z.new_empty(first.shape))  # 1.0/0.0: float is faster than bool
-        out = F.leaky_relu_(torch.maximum(first, second), slope)
-        ctx.save_for_backward(first_won, out)
-        ctx.slope, ctx.length = slope, length
-        return out
-
-    @staticmethod
-    def backward(ctx, grad: torch.Tensor):
-        first_won, out = ctx.saved_tensors
-        n, half, c = out.shape
-        # the gradient arrives transposed from the channel-major concatenation: one copy makes the rest fast
-        grad = torch.ops.aten.leaky_relu_backward(grad.contiguous(), out, ctx.slope, True)
-        grad_z = out.new_empty(n, ctx.length, c)
-        pairs = grad_z[:, : 2 * half].unflatten(1, (half, 2))
-        torch.mul(grad, first_won, out=pairs[:, :, 0])
-        torch.sub(grad, pairs[:, :, 0], out=pairs[:, :, 1])
-        if ctx.length % 2:
-            grad_z[:, -1].zero_()
-        return grad_z, None
-
-
-def _pool_leaky_relu(z: torch.Tensor, pool: int, slope: float) -> torch.Tensor:
-    """(N, L, C) -> (N, L // pool, C): max pool, then LeakyReLU (the same as LeakyReLU, then max pool)."""
-    if pool == 2:
-        if torch.is_grad_enabled() and z.requires_grad:
-            return _MaxPool2LeakyReLU.apply(z, slope)
-        pairs = z[:, : z.shape[1] // 2 * 2].unflatten(1, (-1, 2))
-        return F.leaky_relu_(torch.maximum(pairs[:, :, 0], pairs[:, :, 1]), slope)
-    pooled = F.max_pool2d(z.unsqueeze(1).permute(0, 3, 1, 2), (1, pool))  # on the (N, C, 1, L) channels-last view
-    return F.leaky_relu(pooled, slope).permute(0, 2, 3, 1).flatten(1, 2)
-
-
-class BranchConvBlock(nn.Module):
-    """One Conv1d ('same') -> BatchNorm -> LeakyReLU -> MaxPool stage of all B branches, parameters stacked
-    over branches; ``block(h, k)`` runs branch k on its (N, L, C_in) channels-last map."""
-
-    def __init__(
-        self, branches: int, in_channels: int, out_channels: int, kernel: int, pool: int, negative_slope: float
-    ):
-        super().__init__()
-        self.kernel, self.pool, self.negative_slope = kernel, pool, negative_slope
-        self.weight = nn.Parameter(torch.empty(branches, out_channels, in_channels, kernel))
-        self.bias = nn.Parameter(torch.empty(branches, out_channels))
-        self.bn_weight = nn.Parameter(torch.ones(branches, out_channels))
-        self.bn_bias = nn.Parameter(torch.zeros(branches, out_channels))
-        self.register_buffer("running_mean", torch.zeros(branches, out_channels))
-        self.register_buffer("running_var", torch.ones(branches, out_channels))
-
-    def reset_branch(self, k: int) -> None:
-        """nn.Conv1d's default init of branch k's convolution."""
-        with torch.no_grad():
-            nn.init.kaiming_uniform_(self.weight[k], a=math.sqrt(5))
-            bound = 1 / math.sqrt(self.weight[k][0].numel())  # 1 / sqrt(fan_in), fan_in = C_in * K
-            nn.init.uniform_(self.bias[k], -bound, bound)
-
-    def forward(self, h: torch.Tensor, k: int) -> torch.Tensor:
-        """(N, L, C_in) -> (N, L // pool, C_out) for branch k; in train mode updates branch k's running stats."""
-        if self.kernel % 2 == 0:  # 'same' with an even kernel pads one more on the right, as nn.Conv1d does
-            h = F.pad(h, (0, 0, (self.kernel - 1) // 2, self.kernel // 2))
-        x4 = h.unsqueeze(1).permute(0, 3, 1, 2)  # (N, C_in, 1, L) view with channels-last strides
-        weight, bias, padding = self.weight[k], self.bias[k], (0, self.kernel // 2 if self.kernel % 2 else 0)
-        if self.training:
-            w4 = weight.unsqueeze(2).contiguous(memory_format=torch.channels_last)  # (C_out, C_in, 1, K)
-            z4 = F.batch_norm(
-                _Conv.apply(x4, w4, bias, padding),
-                self.running_mean[k],
-                self.running_var[k],
-                self.bn_weight[k],
-                self.bn_bias[k],
-                True,
-                0.1,
-                1e-5,
-            )  # (N, C_out, 1, L)
-        else:  # batch norm with the running statistics is affine: fold it into the convolution
-            scale = self.bn_weight[k] * (self.running_var[k] + 1e-5).rsqrt()
-            w4 = (weight * scale[:, None, None]).unsqueeze(2).contiguous(memory_format=torch.channels_last)
-            z4 = _Conv.apply(x4, w4, (bias - self.running_mean[k]) * scale + self.bn_bias[k], padding)
-        return _pool_leaky_relu(z4.permute(0, 2, 3, 1).flatten(1, 2), self.pool, self.negative_slope)
-
-
-class MultiBranchCNN1D(nn.Module):
-    """The paper's multi-branch 1D CNN: input (N, branches, n_features) float -> logits (N, n_classes)."""
+class PaperCNN1D(nn.Module):
+    """The paper's network, written as the paper draws it: one nn.Sequential per branch, the branches'
+    maps concatenated on the channel axis, then the fully connected head. Input (N, branches, features):
+    branch k reads X^{k+1}; output logits (N, classes)."""
 
     def __init__(
         self,
         n_features: int,
         n_classes: int,
         branches: int = 3,
-        channels: Sequence[int] = (16, 32),
-        kernels: Sequence[int] = (15, 11),
+        channels=(16, 32),
+        kernels=(15, 11),
         hidden: int = 172,
         negative_slope: float = 0.2,
         dropout: float = 0.5,
         pool: int = 2,
     ):
         super().__init__()
-        channels, kernels = tuple(int(c) for c in channels), tuple(int(k) for k in kernels)
-        n_features, n_classes, branches, hidden, pool = map(int, (n_features, n_classes, branches, hidden, pool))
-        if not 1 <= branches <= MAX_BRANCHES:
-            raise ValueError(f"branches must be in 1..{MAX_BRANCHES}, got {branches}")
-        if not channels or len(channels) != len(kernels):
-            raise ValueError(f"channels {channels} and kernels {kernels} must be non-empty and of equal length")
-        if min(channels + kernels) < 1 or min(n_classes, hidden, pool) < 1:
-            raise ValueError("channels, kernels, n_classes, hidden and pool must all be >= 1")
-        if negative_slope < 0:
-            raise ValueError(
-                f"negative_slope must be >= 0 (pooling before the activation needs it monotonic), got {negative_slope}"
-            )
-        if not 0 <= dropout < 1:
-            raise ValueError(f"dropout must be in [0, 1), got {dropout}")
-        self.out_length = _out_length(n_features, len(channels), pool)
-        if self.out_length < 1:
-            raise ValueError(f"n_features={n_features} is too short for {len(channels)} poolings by {pool}")
-        self.n_features, self.n_classes, self.branches, self.dropout = n_features, n_classes, branches, dropout
-        self.layers = nn.ModuleList(
-            BranchConvBlock(branches, c_in, c_out, k, pool, float(negative_slope))
-            for c_in, c_out, k in zip((1,) + channels[:-1], channels, kernels)
+
+        def branch() -> nn.Sequential:
+            layers, c_in = [], 1
+            for c_out, k in zip(channels, kernels):
+                layers += [
+                    nn.Conv1d(c_in, c_out, k, padding="same"),
+                    nn.BatchNorm1d(c_out),
+                    nn.LeakyReLU(negative_slope),
+                    nn.MaxPool1d(pool),
+                ]
+                c_in = c_out
+            return nn.Sequential(*layers)
+
+        self.branches = nn.ModuleList(branch() for _ in range(branches))
+        length = n_features
+        for _ in channels:
+            length //= pool
+        self.head = nn.Sequential(
+            nn.Flatten(),
+            nn.Linear(branches * channels[-1] * length, hidden),
+            nn.LeakyReLU(negative_slope),
+            nn.Dropout(dropout),
+            nn.Linear(hidden, n_classes),
         )
-        for k in range(branches):  # the straightforward network's init order: branch by branch, then the head
-            for layer in self.layers:
-                layer.reset_branch(k)
-        self.negative_slope = float(negative_slope)
-        self.fc1 = nn.Linear(branches * channels[-1] * self.out_length, hidden)
-        self.fc2 = nn.Linear(hidden, n_classes)
 
     def feature_maps(self, x: torch.Tensor) -> torch.Tensor:
-        """The depth-concatenated map before flattening: (N, channels[-1]·branches, n_features // pool**layers).
-
-        Channels channels[-1]·k .. channels[-1]·(k+1) - 1 come from input branch k (0-based) alone.
-        In train mode this updates the running statistics, as the forward pass does.
-        """
-        return self._feature_maps(self._check(x))
+        return torch.cat([b(x[:, k : k + 1]) for k, b in enumerate(self.branches)], dim=1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        x = self._check(x)
-        if x.device.type == "cpu" and not self.training and not torch.is_grad_enabled() and len(x) > EVAL_CHUNK:
-            # samples are independent in eval mode, and cache-sized chunks run about twice as fast on CPU
-            return torch.cat([self._logits(chunk) for chunk in x.split(EVAL_CHUNK)])
-        return self._logits(x)
-
-    def _check(self, x: torch.Tensor) -> torch.Tensor:
-        expected = (self.branches, self.n_features)
-        if x.dim() != 3 or tuple(x.shape[1:]) != expected:
-            raise ValueError(
-                f"expected input of shape (N, {expected[0]}, {expected[1]}) "
-                f"(batch, branches, features), got {tuple(x.shape)}"
-            )
-        return x.to(self.fc1.weight.dtype)
-
-    def _feature_maps(self, x: torch.Tensor) -> torch.Tensor:
-        maps = []
-        for k in range(self.branches):
-            h = x[:, k].unsqueeze(2)  # (N, D, 1): a channels-last map with one channel
-            for layer in self.layers:
-                h = layer(h, k)
-            maps.append(h.transpose(1, 2))  # (N, C, L) view: the concatenation writes it channel-major
-        return torch.cat(maps, dim=1)
-
-    def _logits(self, x: torch.Tensor) -> torch.Tensor:
-        h = F.leaky_relu_(self.fc1(self._feature_maps(x).flatten(1)), self.negative_slope)
-        return self.fc2(F.dropout(h, self.dropout, self.training))
-
-
-def _out_length(n_features: int, n_layers: int, pool: int) -> int:
-    for _ in range(n_layers):
-        n_features //= pool
-    return n_features
-
-
-def flops_per_sample(
-    n_features: int,
-    n_classes: int,
-    branches: int = 3,
-    channels: Sequence[int] = (16, 32),
-    kernels: Sequence[int] = (15, 11),
-    hidden: int = 172,
-    pool: int = 2,
-) -> int:
-    """Forward FLOPs of one sample: 2 x the multiply-adds of the convolutions and the two linear layers.
-
-    Batch norm, activations, pooling and biases (a few operations per activation, not per weight) are
-    not counted. A training step costs about 3x this per sample.
-    """
-    macs, length, c_in = 0, int(n_features), 1
-    for c_out, k in zip(channels, kernels):
-        macs += branches * length * c_out * c_in * k  # 'same' convolution: one output per input position
-        length, c_in = length // pool, c_out
-    macs += branches * c_in * length * hidden + hidden * n_classes
-    return 2 * macs
-
-
-def tune_glibc_malloc(mmap_threshold: int = 32 << 20, trim_threshold: int = 1 << 30) -> bool:
-    """Make glibc's malloc keep freed memory for reuse rather than return it to the kernel (process-wide).
-
-    A CPU training step allocates tens of MiB of fresh activations and gradients; with glibc's defaults
-    many of their pages are unmapped at the end of the step and faulted in (and zeroed) again in the next,
-    which costs this model 15-20 % of its training speed on 2 cores. This serves allocations up to
-    `mmap_threshold` bytes (glibc's maximum is 32 MiB) from the heap and trims the heap only when more
-    than `trim_threshold` bytes are free at its top. The environment variables MALLOC_MMAP_THRESHOLD_
-    and MALLOC_TRIM_THRESHOLD_, set before the process starts, do the same (set both: either alone
-    turns off glibc's adaptive threshold and makes things slower). Returns False where there is no glibc.
-    """
-    if not sys.platform.startswith("linux"):
-        return False
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-    except OSError:
-        return False
-    m_trim_threshold, m_mmap_threshold = -1, -3  # from glibc's malloc.h
-    ok = libc.mallopt(m_mmap_threshold, int(mmap_threshold)) and libc.mallopt(m_trim_threshold, int(trim_threshold))
-    return bool(ok)
+        return self.head(self.feature_maps(x))
