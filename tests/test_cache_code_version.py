@@ -35,6 +35,10 @@ def edited(monkeypatch):
         ("spin_images", "meshseg.features.shape_diameter"),
         ("pca", "meshseg.features.geometry"),
         ("pca", "meshseg.data.mesh"),  # face areas
+        ("hks", "meshseg.features.operators"),  # shared eigenpairs, handed in as `ops`
+        ("sihks", "meshseg.features.operators"),
+        ("agd", "meshseg.features.operators"),  # shared geodesics
+        ("shape_context", "meshseg.features.operators"),
     ],
 )
 def test_editing_code_a_group_runs_changes_its_version(edited, group, module):
@@ -43,9 +47,16 @@ def test_editing_code_a_group_runs_changes_its_version(edited, group, module):
     assert cache.code_version(get_group(group)) != before
 
 
-def test_editing_unrelated_code_keeps_the_version(edited):
-    before = {g: cache.code_version(get_group(g)) for g in ("gc", "hks", "curvature")}
-    edited("meshseg.features.pca")
+@pytest.mark.parametrize(
+    "module, groups",
+    [
+        ("meshseg.features.pca", ("gc", "hks", "curvature")),
+        ("meshseg.features.operators", ("gc", "pca", "curvature", "cf0", "sdf")),  # groups that share nothing
+    ],
+)
+def test_editing_unrelated_code_keeps_the_version(edited, module, groups):
+    before = {g: cache.code_version(get_group(g)) for g in groups}
+    edited(module)
     assert {g: cache.code_version(get_group(g)) for g in before} == before
 
 
@@ -58,3 +69,5 @@ def test_dependencies_are_transitive_and_skip_packages():
         "meshseg.data.mesh",
     } <= set(deps)
     assert "meshseg.features" not in deps and "meshseg.features.agd" not in deps
+    # every group module imports the registry: it must not reach the shared operators
+    assert "meshseg.features.operators" not in cache.dependencies("meshseg.features.registry")

@@ -7,6 +7,7 @@ import trimesh
 from scipy.sparse.csgraph import dijkstra
 
 from meshseg.features import agd, geometry, shape_context
+from meshseg.features.operators import MeshOperators
 from meshseg.features.registry import GROUPS
 
 REFERENCE = conftest.SHARED / "data/reference/kalogerakis2010"
@@ -84,11 +85,17 @@ def test_registered_shape_float32_finite(name, dim):
 
 def test_one_dijkstra_run_per_mesh():
     V, F = bumpy_sphere(2)
-    geo = agd.sampled_geodesics(V, F, 64)
-    assert agd.sampled_geodesics(V.copy(), F.copy(), 64) is geo  # keyed by content, not identity
-    assert agd.sampled_geodesics(V + 1.0, F, 64) is not geo
+    ops = MeshOperators(V, F)
+    geo = ops.geodesics(64)
+    assert ops.geodesics(64) is geo and ops.geodesics(32) is not geo  # memoised per n_samples
+    assert MeshOperators(V.copy(), F.copy()).geodesics(64) is not geo  # the memo is the object's
+    plain = agd.sampled_geodesics(V, F, 64)  # pure: a new run, the same values
+    assert plain is not geo and (plain.dist == geo.dist).all() and (plain.samples == geo.samples).all()
     assert len(geo.samples) == 64 and geo.dist.shape == (64, len(F))
     np.testing.assert_allclose(geo.cell_area.sum(), 1.0)
+    # shared or not, the groups' values are the same
+    for name in ("agd", "shape_context"):
+        np.testing.assert_array_equal(GROUPS[name](V, F, ops=ops, n_samples=64), GROUPS[name](V, F, n_samples=64))
 
 
 def test_column_names_are_the_reference_names():

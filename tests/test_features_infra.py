@@ -130,3 +130,37 @@ def test_group_shape_is_checked():
             GROUPS["test_bad"](STRIP_V, STRIP_F)
     finally:
         del GROUPS["test_bad"]
+
+
+SEEN_OPS = []
+
+
+def _shared_x(V, F, *, ops=None):
+    SEEN_OPS.append(ops)
+    return geometry.face_centers(V, F)[:, :1]
+
+
+if "test_shared_a" not in GROUPS:
+    register("test_shared_a", dim=1, shared=True)(_shared_x)
+    register("test_shared_b", dim=1, shared=True)(_shared_x)
+
+
+def test_shared_groups_get_one_operators_object_per_mesh(tmp_path):
+    fs = FeatureSet.from_config(
+        OmegaConf.create({"name": "t", "groups": ["test_shared_a", "test_centre", "test_shared_b"]})
+    )
+    SEEN_OPS.clear()
+    fs.compute(STRIP_V, STRIP_F, "strip", FeatureCache(tmp_path))
+    a, b = SEEN_OPS
+    assert a is b and a.key == "strip" and a.V is STRIP_V and a.F is STRIP_F  # through the cache's get
+    fs.compute(STRIP_V * 2, STRIP_F, "other")
+    assert SEEN_OPS[2] is SEEN_OPS[3] and SEEN_OPS[2] is not a and SEEN_OPS[2].key == "other"
+    GROUPS["test_shared_a"](STRIP_V, STRIP_F)  # a direct call: the function computes on its own
+    assert SEEN_OPS[4] is None
+    assert GROUPS["test_shared_a"].defaults == {} and not GROUPS["test_centre"].shared
+
+
+def test_shared_group_needs_ops_keyword():
+    with pytest.raises(ValueError, match="needs the keyword ops=None"):
+        register("test_no_ops", dim=1, shared=True)(lambda V, F: np.zeros((len(F), 1)))
+    assert "test_no_ops" not in GROUPS

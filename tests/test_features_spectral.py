@@ -9,6 +9,7 @@ from scipy.stats import spearmanr
 
 import meshseg.features.conformal  # noqa: F401  (registers cf0, cf_smooth)
 import meshseg.features.heat_kernel as hk
+from meshseg.features.operators import MeshOperators
 from meshseg.features.registry import GROUPS
 
 REFERENCE = SHARED / "data/reference/kalogerakis2010"
@@ -195,13 +196,16 @@ def test_eigenpairs_shared_between_hks_and_sihks(monkeypatch):
     V, F = bumpy_sphere()
     calls = []
     real = hk._eigenpairs
-    monkeypatch.setattr(hk, "_eigenpairs", lambda *a: calls.append(1) or real(*a))
-    hk._CACHE.clear()
-    group("hks", V, F)
-    group("sihks", V, F)
-    assert len(calls) == 1
-    group("hks", V, F, n_eigen=50)
-    assert len(calls) == 2
+    monkeypatch.setattr(hk, "_eigenpairs", lambda *a: calls.append(a[2]) or real(*a))
+    ops = MeshOperators(V, F)
+    h, s = GROUPS["hks"](V, F, ops=ops), GROUPS["sihks"](V, F, ops=ops)
+    assert calls == [100]
+    GROUPS["hks"](V, F, ops=ops, n_eigen=50)
+    assert calls == [100, 50]
+    # without operators each call solves on its own, to the same values
+    np.testing.assert_array_equal(group("hks", V, F), h)
+    np.testing.assert_array_equal(group("sihks", V, F), s)
+    assert calls == [100, 50, 100, 100]
 
 
 def test_heat_kernel_disconnected_small_and_degenerate():

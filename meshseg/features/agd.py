@@ -6,12 +6,13 @@ All-pairs geodesics are out of reach at 55k faces, so distances are exact Dijkst
 the face dual graph (`geometry.face_dual_graph`) from `n_samples` source faces spread by
 farthest-point sampling; every face then stands for the area of its geodesic Voronoi cell (the
 faces nearer to its sample than to any other), so sums over the faces of the mesh become sums over
-the samples.
+the samples. `sampled_geodesics` is a pure function; `agd` and `shape_context` take the distances
+from the mesh's shared `operators.MeshOperators` (argument `ops`), which runs Dijkstra once per
+mesh and `n_samples` for both.
 """
 
 from __future__ import annotations
 
-import hashlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -73,19 +74,6 @@ class SampledGeodesics:
     cell_area: np.ndarray  # (S,)
 
 
-_cache: dict = {}
-
-
-def _mesh_key(V: np.ndarray, F: np.ndarray, *extra) -> str:
-    h = hashlib.blake2b(digest_size=16)
-    for x in (V, F):
-        x = np.ascontiguousarray(x)
-        h.update(str((x.dtype, x.shape)).encode())
-        h.update(x.tobytes())
-    h.update(repr(extra).encode())
-    return h.hexdigest()
-
-
 def spread_samples(centers: np.ndarray, component: np.ndarray, k: int) -> np.ndarray:
     """`k` faces by farthest-point sampling of the face centres, plus, for every connected component
     left without one, its face nearest to the component's centroid (so that every face reaches a
@@ -105,11 +93,9 @@ def spread_samples(centers: np.ndarray, component: np.ndarray, k: int) -> np.nda
 def sampled_geodesics(V: np.ndarray, F: np.ndarray, n_samples: int) -> SampledGeodesics:
     """Distances from `n_samples` farthest-point sample faces to all faces, with their Voronoi cells.
 
-    Cached for the last mesh seen, so that `agd` and `shape_context` run Dijkstra once per mesh.
+    Not memoised: `MeshOperators.geodesics` is, per mesh, so that `agd` and `shape_context` run
+    Dijkstra once per mesh.
     """
-    key = _mesh_key(V, F, int(n_samples))
-    if key in _cache:
-        return _cache[key]
     centre, unit = kalogerakis_units(V, F)
     Vn = (V - centre) / unit
     A = face_areas(Vn, F)
@@ -126,9 +112,12 @@ def sampled_geodesics(V: np.ndarray, F: np.ndarray, n_samples: int) -> SampledGe
     geo = SampledGeodesics(
         Vn, unit, C, per_face_normals(Vn, F), area, graph, component, samples, dist, owner, owner_dist, cell_area
     )
-    _cache.clear()
-    _cache[key] = geo
     return geo
+
+
+def shared_geodesics(V: np.ndarray, F: np.ndarray, n_samples: int, ops) -> SampledGeodesics:
+    """The distances from the mesh's shared operators, or computed here when called without them."""
+    return sampled_geodesics(V, F, n_samples) if ops is None else ops.geodesics(n_samples)
 
 
 def spread_quantiles(d: np.ndarray, h: np.ndarray, w: np.ndarray, qs) -> np.ndarray:
@@ -211,8 +200,8 @@ def distance_statistics(geo: SampledGeodesics) -> np.ndarray:
     return X
 
 
-@register("agd", 15, version="1", columns=AGD_COLUMNS)
-def average_geodesic_distance(V: np.ndarray, F: np.ndarray, *, n_samples: int = 256) -> np.ndarray:
+@register("agd", 15, version="1", columns=AGD_COLUMNS, shared=True)
+def average_geodesic_distance(V: np.ndarray, F: np.ndarray, *, n_samples: int = 256, ops=None) -> np.ndarray:
     """Area-weighted statistics of the geodesic distances g from a face to the surface (15 columns).
 
     Columns: E[g], E[g^2], E[g^4], E[g^8], E[g^.5], E[g^.25]; the variance, skewness and kurtosis
@@ -230,6 +219,6 @@ def average_geodesic_distance(V: np.ndarray, F: np.ndarray, *, n_samples: int = 
     statistics are over the face's own component (area renormalised to 1): the original would sum
     infinite distances.
     """
-    X = distance_statistics(sampled_geodesics(V, F, n_samples))
+    X = distance_statistics(shared_geodesics(V, F, n_samples, ops))
     X -= X.min(axis=0)  # the original's per-mesh shift (column 15 stays 0)
     return X.astype(np.float32)

@@ -27,27 +27,32 @@ from meshseg.features.registry import Group
 log = logging.getLogger(__name__)
 
 
+_OPERATORS = "meshseg.features.operators"  # a shared group runs it without importing it (it gets `ops`)
+
+
 def code_version(group: Group) -> str:
     """The group's declared version plus a hash of the source of every meshseg module its code runs:
     its own module and, transitively, each meshseg module that one imports (at the top or inside a
-    function). Editing any code that computes a group can never serve values computed before the edit."""
-    return _code_version(group.fn.__module__, group.version)
+    function), and for a shared group (`register(shared=True)`) the shared operators' module and its
+    imports too. Editing any code that computes a group can never serve values computed before the edit."""
+    roots = (group.fn.__module__, _OPERATORS) if group.shared else (group.fn.__module__,)
+    return _code_version(roots, group.version)
 
 
 @cache
-def _code_version(module: str, version: str) -> str:
+def _code_version(modules: tuple[str, ...], version: str) -> str:
     h = hashlib.sha256(version.encode())
-    for name in dependencies(module):
+    for name in dependencies(*modules):
         h.update(name.encode())
         h.update(inspect.getsource(importlib.import_module(name)).encode())
     return h.hexdigest()[:12]
 
 
-def dependencies(module: str) -> list[str]:
-    """`module` and the meshseg modules it imports, transitively, sorted by name. Packages (`__init__`)
+def dependencies(*modules: str) -> list[str]:
+    """The `modules` and the meshseg modules they import, transitively, sorted by name. Packages (`__init__`)
     are namespaces here: `from meshseg.features import geometry` depends on `geometry`, not on every family."""
     seen: set[str] = set()
-    todo = [module]
+    todo = list(modules)
     while todo:
         name = todo.pop()
         if name in seen:
@@ -84,7 +89,7 @@ def cache_key(mesh_hash: str, group: Group, params: dict) -> str:
 
 
 class FeatureCache:
-    """`get(V, F, mesh_hash, group, params)` returns the group's (F, dim) matrix, from disk when it
+    """`get(V, F, mesh_hash, group, params, ops)` returns the group's (F, dim) matrix, from disk when it
     can. `root=None` disables the cache (always computes)."""
 
     def __init__(self, root: str | os.PathLike | None):
@@ -95,16 +100,17 @@ class FeatureCache:
     def path(self, mesh_hash: str, group: Group, params: dict) -> Path:
         return self.root / group.name / f"{cache_key(mesh_hash, group, params)}.npz"
 
-    def get(self, V: np.ndarray, F: np.ndarray, mesh_hash: str, group: Group, params: dict) -> np.ndarray:
+    def get(self, V: np.ndarray, F: np.ndarray, mesh_hash: str, group: Group, params: dict, ops=None) -> np.ndarray:
+        """`ops`: the mesh's shared `MeshOperators`, used only when the group must be computed."""
         params = group.params(params)
         if self.root is None:
-            return group(V, F, **params)
+            return group(V, F, ops=ops, **params)
         path = self.path(mesh_hash, group, params)
         if path.exists():
             X = self._load(path, (len(F), group.dim))
             if X is not None:
                 return X
-        X = group(V, F, **params)
+        X = group(V, F, ops=ops, **params)
         self._save(path, X)
         return X
 

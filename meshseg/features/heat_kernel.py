@@ -8,12 +8,12 @@ semi-definite M-matrix on non-manifold edges, zero-area faces and needle triangl
 weights there are unbounded or negative); on a clean Delaunay-ish mesh the two agree.
 Eigenvectors are M-orthonormal. A disconnected mesh has one zero eigenvalue per component; those
 are set to exactly 0, and `n_eigen` counts the eigenpairs of a connected mesh, so (components − 1)
-more are computed. Eigenpairs are computed once per mesh and shared by `hks` and `sihks`.
+more are computed. `laplace_beltrami_eigenpairs` is a pure function; `hks` and `sihks` take the
+eigenpairs from the mesh's shared `operators.MeshOperators` (argument `ops`), which computes them
+once per mesh and `n_eigen` for both.
 """
 
 from __future__ import annotations
-
-import hashlib
 
 import numpy as np
 import robust_laplacian
@@ -27,23 +27,16 @@ from meshseg.errors import ConfigError
 from meshseg.features.geometry import vertex_to_face
 from meshseg.features.registry import register
 
-_CACHE: dict = {}  # one entry: hash of (V, F, n_eigen) -> (eigenvalues, eigenvectors, faces)
-
 
 def laplace_beltrami_eigenpairs(
     V: np.ndarray, F: np.ndarray, n_eigen: int = 100
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """The smallest eigenpairs of L φ = λ M φ, ascending: (λ (k,), φ (n, k), faces (F, 3) re-indexed
-    into the n referenced vertices, number of components). Cached for the last mesh asked."""
+    into the n referenced vertices, number of components). Not memoised: `MeshOperators.eigenpairs`
+    is, per mesh."""
     V = np.ascontiguousarray(V, np.float64)
     F = np.ascontiguousarray(F, np.int64)
-    key = hashlib.blake2b(
-        V.tobytes() + F.tobytes() + str((V.shape, F.shape, n_eigen)).encode(), digest_size=16
-    ).digest()
-    if key not in _CACHE:
-        _CACHE.clear()
-        _CACHE[key] = _eigenpairs(V, F, n_eigen)
-    return _CACHE[key]
+    return _eigenpairs(V, F, n_eigen)
 
 
 def _eigenpairs(V: np.ndarray, F: np.ndarray, n_eigen: int):
@@ -84,6 +77,11 @@ def heat_kernel_signature(lam: np.ndarray, phi: np.ndarray, t: np.ndarray) -> np
     return (phi**2) @ np.exp(-np.outer(lam, t))
 
 
+def _shared_eigenpairs(V: np.ndarray, F: np.ndarray, n_eigen: int, ops) -> tuple:
+    """The eigenpairs from the mesh's shared operators, or computed here when called without them."""
+    return laplace_beltrami_eigenpairs(V, F, n_eigen) if ops is None else ops.eigenpairs(n_eigen)
+
+
 def hks_times(lam: np.ndarray, n_times: int) -> np.ndarray:
     """Sun et al.'s times: n_times log-spaced from 4 ln10 / λ_max to 4 ln10 / λ_1 (first non-zero)."""
     positive = lam[lam > 0]
@@ -92,8 +90,8 @@ def hks_times(lam: np.ndarray, n_times: int) -> np.ndarray:
     return np.geomspace(4 * np.log(10) / positive[-1], 4 * np.log(10) / positive[0], n_times)
 
 
-@register("hks", 100, columns=[f"hks{i}" for i in range(100)])
-def hks(V: np.ndarray, F: np.ndarray, *, n_eigen: int = 100) -> np.ndarray:
+@register("hks", 100, columns=[f"hks{i}" for i in range(100)], shared=True)
+def hks(V: np.ndarray, F: np.ndarray, *, n_eigen: int = 100, ops=None) -> np.ndarray:
     """HKS at 100 times (Sun et al. 2009), one column per time, short to long.
 
     Column j is Σ_i exp(−λ_i t_j) φ_i(x)² over the `n_eigen` smallest eigenpairs (the constant
@@ -102,12 +100,12 @@ def hks(V: np.ndarray, F: np.ndarray, *, n_eigen: int = 100) -> np.ndarray:
     No normalisation: values scale as 1/area (×1/9 when the mesh is scaled by 3) while the t range
     follows the spectrum. Per vertex, then per face the mean of its three vertices.
     """
-    lam, phi, Fc, _ = laplace_beltrami_eigenpairs(V, F, n_eigen)
+    lam, phi, Fc, _ = _shared_eigenpairs(V, F, n_eigen, ops)
     h = heat_kernel_signature(lam, phi, hks_times(lam, 100))
     return vertex_to_face(h, Fc)
 
 
-@register("sihks", 100, columns=[f"sihks{i}" for i in range(100)])
+@register("sihks", 100, columns=[f"sihks{i}" for i in range(100)], shared=True)
 def sihks(
     V: np.ndarray,
     F: np.ndarray,
@@ -117,6 +115,7 @@ def sihks(
     tau_step: float = 0.5,
     tau_start: float = -24.0,
     n_tau: int = 201,
+    ops=None,
 ) -> np.ndarray:
     """Scale-invariant HKS (Bronstein & Kokkinos 2010): the first 100 |DFT| frequencies of
     d/dτ log h(α^τ), one column per frequency, 0 (the DC term) first.
@@ -136,7 +135,7 @@ def sihks(
     """
     if (n_tau - 1) // 2 + 1 < 100:
         raise ConfigError(f"sihks: n_tau={n_tau} gives fewer than 100 frequencies; use n_tau >= 199")
-    lam, phi, Fc, _ = laplace_beltrami_eigenpairs(V, F, n_eigen)
+    lam, phi, Fc, _ = _shared_eigenpairs(V, F, n_eigen, ops)
     t0 = hks_times(lam, 2)[0]
     t = t0 * alpha ** (tau_start + tau_step * np.arange(n_tau))
     h = heat_kernel_signature(lam, phi, t)

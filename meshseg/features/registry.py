@@ -3,6 +3,12 @@
 A family module registers its groups with `@register`; the registry knows each group's width,
 column names, default parameters (the function's keyword defaults) and a version string that is
 part of every cache key — bump it when a group's values change.
+
+A group registered with `shared=True` also takes the keyword `ops`: the mesh's
+`operators.MeshOperators`, whose memoised eigenpairs and geodesics it shares with the other groups
+computed for the same mesh (`FeatureSet.compute` passes one per mesh). Its function must accept
+`ops=None` and then compute what it needs itself, so a direct call needs no operators. This module
+never imports `operators`: every group's cache code version follows this module's imports.
 """
 
 from __future__ import annotations
@@ -24,6 +30,7 @@ class Group:
     version: str
     columns: tuple[str, ...]
     defaults: dict = field(default_factory=dict)
+    shared: bool = False  # takes the mesh's shared operators as keyword `ops`
 
     def params(self, overrides: dict | None = None) -> dict:
         """Default parameters updated by `overrides`; an unknown name is an error."""
@@ -43,8 +50,15 @@ class Group:
                 )
         return {**self.defaults, **overrides}
 
-    def __call__(self, V: np.ndarray, F: np.ndarray, **params) -> np.ndarray:
-        X = np.asarray(self.fn(V, F, **self.params(params)), dtype=np.float32)
+    def __call__(self, V: np.ndarray, F: np.ndarray, ops=None, **params) -> np.ndarray:
+        """The (F, dim) float32 matrix of (V, F). `ops`: the mesh's `MeshOperators`, handed to a shared
+        group (None: it computes what it needs itself); ignored by the others."""
+        params = self.params(params)
+        if self.shared:
+            if ops is not None and not ops.describes(V, F):
+                raise ValueError(f"feature group {self.name!r}: the shared operators given are those of another mesh")
+            params["ops"] = ops
+        X = np.asarray(self.fn(V, F, **params), dtype=np.float32)
         if X.shape != (len(F), self.dim):
             raise RuntimeError(f"feature group {self.name!r} returned shape {X.shape}, expected {(len(F), self.dim)}")
         return X
@@ -53,20 +67,25 @@ class Group:
 GROUPS: dict[str, Group] = {}
 
 
-def register(name: str, dim: int, version: str = "1", columns: list[str] | None = None):
-    """Decorator: add `fn(V, F, **params)` to GROUPS as `name` with `dim` columns."""
+def register(name: str, dim: int, version: str = "1", columns: list[str] | None = None, shared: bool = False):
+    """Decorator: add `fn(V, F, **params)` to GROUPS as `name` with `dim` columns; `shared`: fn also
+    takes the mesh's shared operators as keyword `ops` (not a parameter: no part of the cache key)."""
 
     def wrap(fn):
         if name in GROUPS:
             raise ValueError(f"feature group {name!r} registered twice")
         sig = inspect.signature(fn)
+        if shared and (sig.parameters.get("ops") is None or sig.parameters["ops"].default is not None):
+            raise ValueError(f"feature group {name!r} is shared: its function needs the keyword ops=None")
         defaults = {
-            k: p.default for k, p in list(sig.parameters.items())[2:] if p.default is not inspect.Parameter.empty
+            k: p.default
+            for k, p in list(sig.parameters.items())[2:]
+            if p.default is not inspect.Parameter.empty and not (shared and k == "ops")
         }
         cols = tuple(columns) if columns is not None else tuple(f"{name}[{i}]" for i in range(dim))
         if len(cols) != dim:
             raise ValueError(f"feature group {name!r}: {len(cols)} column names for {dim} columns")
-        GROUPS[name] = Group(name, fn, dim, version, cols, defaults)
+        GROUPS[name] = Group(name, fn, dim, version, cols, defaults, shared)
         return fn
 
     return wrap

@@ -17,6 +17,7 @@ import numpy as np
 from meshseg.data.datasets import MeshDataset
 from meshseg.errors import ConfigError, MeshDataError
 from meshseg.features.cache import FeatureCache
+from meshseg.features.operators import MeshOperators
 from meshseg.features.registry import get_group
 
 _ENTRY = re.compile(r"^(\w+)(?:\[(\d*):(\d*)\])?$")
@@ -96,13 +97,17 @@ class FeatureSet:
         timings: dict | None = None,
     ) -> np.ndarray:
         """The (F, dim) float32 matrix; each group computed once (or read from the cache).
-        `timings`, if given, receives seconds per group."""
+        `timings`, if given, receives seconds per group (a group that shares operators is charged
+        for the ones it computes first: `hks` for the eigen-solve that `sihks` then reuses)."""
         cache = cache or FeatureCache(None)
+        # one per call: the groups computed here share its eigenpairs and geodesics, and they are
+        # freed with it (only those of a group not already on disk are ever computed)
+        ops = MeshOperators(V, F, key=mesh_hash)
         blocks: dict[str, np.ndarray] = {}
         for e in self.entries:
             if e.group not in blocks:
                 t0 = time.perf_counter()
-                blocks[e.group] = cache.get(V, F, mesh_hash, get_group(e.group), self.params.get(e.group, {}))
+                blocks[e.group] = cache.get(V, F, mesh_hash, get_group(e.group), self.params.get(e.group, {}), ops)
                 if timings is not None:
                     timings[e.group] = time.perf_counter() - t0
         return np.ascontiguousarray(

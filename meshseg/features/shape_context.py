@@ -14,7 +14,8 @@ sums to sum_k (area_k / A) / (d / D + 0.1) over the faces within 1.2 D (about 1.
 D, the per-mesh normalisation, is the 95th percentile over source points of the 95th percentile of
 their geodesic distances.
 
-Here the distances come from sample faces (`agd.sampled_geodesics`), in two levels:
+Here the distances come from sample faces (`agd.sampled_geodesics`, run once per mesh for both
+`agd` and this group by `operators.MeshOperators`), in two levels:
   - far field: `n_samples` farthest-point samples with exact distances to every face. Each stands
     for its geodesic Voronoi cell: the cell's area is spread uniformly over distances d(i, sample)
     -+ sqrt(3) sigma (sigma^2: the cell's mean squared radius / 2) and over u . n values with the
@@ -34,7 +35,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
 from threadpoolctl import threadpool_limits
 
-from meshseg.features.agd import sampled_geodesics
+from meshseg.features.agd import shared_geodesics
 from meshseg.features.geometry import farthest_point_sampling
 from meshseg.features.registry import register
 
@@ -242,7 +243,7 @@ def _cell_direction(u: np.ndarray, mn: np.ndarray, nn: np.ndarray):
     return mu, var
 
 
-@register("shape_context", 270, version="1", columns=SC_COLUMNS)
+@register("shape_context", 270, version="1", columns=SC_COLUMNS, shared=True)
 def shape_context(
     V: np.ndarray,
     F: np.ndarray,
@@ -252,6 +253,7 @@ def shape_context(
     near_area: float = 0.06,
     soft_binning: bool = True,
     scale_calibration: float = 0.861,
+    ops=None,
 ) -> np.ndarray:
     """Geodesic shape context (270 columns): six 2D histograms, binning b = (distance bins x angle
     bins) in the order 5x4, 5x6, 5x8, 10x4, 10x6, 10x8, each flattened distance-major (column
@@ -267,7 +269,7 @@ def shape_context(
     Meshes of several components: faces of other components are out of reach, as beyond 1.2 D in
     the original; weights stay fractions of the whole mesh's area.
     """
-    geo = sampled_geodesics(V, F, n_samples)
+    geo = shared_geodesics(V, F, n_samples, ops)  # the same Dijkstra run as `agd`'s
     nf = len(F)
     C, N, a = geo.centers, geo.normals, geo.area
     S = len(geo.samples)
