@@ -21,10 +21,10 @@ from omegaconf import DictConfig, OmegaConf
 
 from meshseg import CONF_DIR
 from meshseg.data.datasets import MeshDataset, build_dataset
-from meshseg.data.splits import Fold, folds_for, split_name
+from meshseg.data.splits import Fold, build_split, folds_for, split_name
 from meshseg.errors import ConfigError, MeshsegError
 from meshseg.features.sets import FeatureSet
-from meshseg.refine import check_refine
+from meshseg.refine import build_refinement
 
 log = logging.getLogger("meshseg.run")
 
@@ -84,7 +84,8 @@ def check_knobs(cfg: DictConfig) -> None:
         raise ConfigError(f"budget {b.name}: epochs and batch_size must be >= 1 and faces_per_mesh >= 1 or null")
     if not (isinstance(cfg.seed, int) and isinstance(cfg.workers, int) and cfg.workers >= 1):
         raise ConfigError(f"seed={cfg.seed} must be an integer and workers={cfg.workers} an integer >= 1")
-    check_refine(cfg.refine)  # before any fold trains, not after
+    build_refinement(cfg.refine)  # its settings checked before any fold trains, not after
+    build_split(cfg.split)
     FeatureSet.from_config(cfg.features)  # unknown groups and bad group parameters
     t = cfg.tracking
     if not (float(t.heartbeat_s) > 0 and float(t.lease_timeout_s) > 2 * float(t.heartbeat_s)):
@@ -130,18 +131,6 @@ def sweep_cells(cfg: DictConfig, category_given: bool, fold_given: bool) -> list
     return cells
 
 
-def refine_features(mesh, cfg: DictConfig):
-    """The mesh's AGD features (the paper's f_u in graphcut_agd; cached like every group), else None."""
-    if cfg.refine.name != "graphcut_agd":
-        return None
-    from meshseg.features.cache import FeatureCache
-    from meshseg.features.sets import parse_entry
-
-    params = dict((cfg.features.get("params") or {}).get("agd") or {})  # the run's AGD settings, if it set any
-    agd = FeatureSet("agd", (parse_entry("agd"),), {"agd": params})
-    return agd.compute(mesh.vertices, mesh.faces, mesh.content_hash, FeatureCache(cfg.paths.cache_dir))
-
-
 def _skipped(name: str, chash: str, holder) -> float:
     """Log why a fold is not run (its config is FINISHED, or a live process runs it); its accuracy or NaN."""
     acc = holder.data.metrics.get("test_acc", float("nan"))
@@ -161,99 +150,82 @@ def _skipped(name: str, chash: str, holder) -> float:
 
 
 def run(cfg: DictConfig) -> float:
-    """One fold: skip if its config already has a FINISHED run, else train, evaluate and log it.
-    Returns the fold's test accuracy (area-weighted, after refinement)."""
-    import torch
-
+    """One fold: skip if its config already has a FINISHED run (or a live one), else resolve -> fit and
+    predict -> refine -> score -> record. Returns the fold's test accuracy (area-weighted, refined)."""
     from meshseg.metrics import mesh_scores
-    from meshseg.refine import refine_labels
-    from meshseg.tracking import Tracker, flatten, fold_identity, git_sha
+    from meshseg.tracking import FoldRecord, Tracker, flatten, fold_identity
+    from meshseg.training.context import TrainContext
     from meshseg.training.data import FeatureSource
     from meshseg.training.fit import fit_predict
-    from meshseg.training.malloc import tune_glibc_malloc
 
-    if cfg.trainer.threads:
-        torch.set_num_threads(int(cfg.trainer.threads))
-    if cfg.trainer.get("malloc_tune"):
-        tune_glibc_malloc()  # speed only: results are the same either way
+    # resolve: every setting checked, the fold's identity, and whether it has run already
+    setup_trainer(cfg.trainer)
     dataset = build_dataset(cfg.dataset)
     category, fold = resolve_cell(cfg, dataset)
-    features = FeatureSet.from_config(cfg.features)
+    features, refinement = FeatureSet.from_config(cfg.features), build_refinement(cfg.refine)
     config, chash = fold_identity(cfg, category, fold, dataset.data_hash)
-    name = f"{cfg.model.name} {cfg.branches}B {dataset.name}/{category} {split_name(cfg.split)} fold {fold.index}"
-
+    split = split_name(cfg.split)
+    name = f"{cfg.model.name} {cfg.branches}B {dataset.name}/{category} {split} fold {fold.index}"
     tracker = Tracker(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_dir)
     done = tracker.finished(chash) if cfg.tracking.skip_finished else None
     if done is not None:
         return _skipped(name, chash, done)
-
-    tags = {
-        "dataset": dataset.name,
-        "category": category,
-        "model": cfg.model.name,
-        "branches": cfg.branches,
-        "features": features.name,
-        "split": split_name(cfg.split),
-        "fold": fold.index,
-        "refine": cfg.refine.name,
-        "budget": cfg.budget.name,
-        "config_hash": chash,
-        "git_sha": git_sha(),
-        "data_hash": dataset.data_hash,
-        "seed": cfg.seed,
-        "accelerator": cfg.trainer.accelerator,
-    }
+    tags = FoldRecord.tags(
+        cfg, dataset=dataset, category=category, fold=fold, features=features.name, split=split, config_hash=chash
+    )
     log.info("run: %s (config %s, %d train / %d test meshes)", name, chash, len(fold.train), len(fold.test))
     run_id = None
     if cfg.tracking.skip_finished:  # claim the config: a concurrent sweep may have taken it since the check
         run_id, holder = tracker.claim(name, tags, cfg.tracking.heartbeat_s, cfg.tracking.lease_timeout_s)
         if run_id is None:
             return _skipped(name, chash, holder)
+
     with tracker.run(name, tags, flatten(config), run_id) as run_id:
+        # fit and predict
         source = FeatureSource(dataset, category, features, cfg.paths.cache_dir, cfg.branches, cfg.ring_adjacency)
-        preds = fit_predict(
-            source,
-            fold,
-            cfg.model,
-            cfg.budget,
-            cfg.trainer,
-            cfg.seed,
-            cfg.workers,
-            logger=tracker.lightning_logger(run_id),
-        )
+        ctx = TrainContext.from_config(cfg.budget, cfg.trainer, cfg.seed, tracker.lightning_logger(run_id))
+        preds = fit_predict(source, fold, cfg.model, cfg.budget.faces_per_mesh, ctx, cfg.workers)
+        # refine: the refinement's own per-mesh inputs (e.g. AGD) come from the feature cache
         raw = [p.argmax(axis=1) for p in preds.probabilities]
-        agd = [refine_features(m, cfg) for m in preds.meshes]
-        labels = [refine_labels(m, p, cfg.refine, f) for m, p, f in zip(preds.meshes, preds.probabilities, agd)]
+        labels = [
+            refinement(m, p, source.groups(m, refinement.needs)) for m, p in zip(preds.meshes, preds.probabilities)
+        ]
+        # score
         rows = mesh_scores(preds.meshes, raw, labels)
         metrics = {
-            "test_acc": np.mean([r["acc"] for r in rows]),
-            "test_acc_raw": np.mean([r["acc_raw"] for r in rows]),
+            FoldRecord.ACC: np.mean([r["acc"] for r in rows]),
+            FoldRecord.ACC_RAW: np.mean([r["acc_raw"] for r in rows]),
             **{f"time_{k}_s": v for k, v in preds.timings.items()},
             **{f"n_{k}": v for k, v in preds.counts.items()},
             "train_samples_per_s": preds.counts["train_samples"] * preds.counts["epochs"] / preds.timings["train"],
         }
+        # record
         tracker.log_metrics(run_id, metrics)
-        predictions = {}
-        for m, p, r, lab in zip(preds.meshes, preds.probabilities, raw, labels):
-            predictions.update(
-                {
-                    f"labels_{m.id}": lab.astype(np.int16),
-                    f"labels_raw_{m.id}": r.astype(np.int16),
-                    f"probs_{m.id}": p.astype(np.float16),
-                }
-            )
-        tracker.log_fold(run_id, OmegaConf.to_yaml(config), rows, predictions)
+        arrays = FoldRecord.predictions(preds.meshes, preds.probabilities, raw, labels)
+        tracker.log_fold(run_id, OmegaConf.to_yaml(config), rows, arrays)
         if cfg.tracking.renders:
             tracker.log_pictures(run_id, preds.meshes, labels, rows, int(cfg.tracking.renders))
     log.info(
         "done: %s test_acc %.4f (raw %.4f), train %.1f s, run %s",
         name,
-        metrics["test_acc"],
-        metrics["test_acc_raw"],
+        metrics[FoldRecord.ACC],
+        metrics[FoldRecord.ACC_RAW],
         preds.timings["train"],
         run_id,
     )
-    return float(metrics["test_acc"])
+    return float(metrics[FoldRecord.ACC])
+
+
+def setup_trainer(trainer: DictConfig) -> None:
+    """Process-wide settings of the trainer config: torch's thread count, glibc's malloc tuning."""
+    import torch
+
+    from meshseg.training.malloc import tune_glibc_malloc
+
+    if trainer.threads:
+        torch.set_num_threads(int(trainer.threads))
+    if trainer.get("malloc_tune"):
+        tune_glibc_malloc()  # speed only: results are the same either way
 
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="run")

@@ -63,6 +63,34 @@ class FoldRecord:
     PREDICTIONS = "predictions.npz"
     PREDICTION_ARRAYS = {"labels_": "int16", "labels_raw_": "int16", "probs_": "float16"}
 
+    @staticmethod
+    def tags(cfg, *, dataset, category: str, fold, features: str, split: str, config_hash: str) -> dict:
+        """The run's tags: TAGS (what the report selects by) and the seed and accelerator."""
+        return {
+            "dataset": dataset.name,
+            "category": category,
+            "model": cfg.model.name,
+            "branches": cfg.branches,
+            "features": features,
+            "split": split,
+            "fold": fold.index,
+            "refine": cfg.refine.name,
+            "budget": cfg.budget.name,
+            "config_hash": config_hash,
+            "git_sha": git_sha(),
+            "data_hash": dataset.data_hash,
+            "seed": cfg.seed,
+            "accelerator": cfg.trainer.accelerator,
+        }
+
+    @staticmethod
+    def predictions(meshes, probabilities, raw, labels) -> dict[str, np.ndarray]:
+        """The per-face arrays of every test mesh, keyed `<prefix><mesh id>` (PREDICTION_ARRAYS)."""
+        out = {}
+        for m, p, r, lab in zip(meshes, probabilities, raw, labels):
+            out.update({f"labels_{m.id}": lab, f"labels_raw_{m.id}": r, f"probs_{m.id}": p})
+        return out
+
 
 #: kept for callers of the earlier name
 CONTRACT_TAGS = FoldRecord.TAGS

@@ -16,6 +16,7 @@ from meshseg.data.splits import Fold
 from meshseg.features.sets import FeatureSet
 from meshseg.models.forest import RandomForest
 from meshseg.models.pca_nn import principal_axes
+from meshseg.training.context import TrainContext
 from meshseg.training.data import FeatureSource, build_train
 from meshseg.training.fit import fit_predict
 
@@ -54,7 +55,8 @@ def source(cache_dir):
 
 def fit(source, model, test=("0",), seed=0, *overrides):
     cfg = compose_run(*SMALL, f"model={model}", *overrides)
-    return fit_predict(source, Fold(0, TRAIN, tuple(test)), cfg.model, cfg.budget, cfg.trainer, seed, workers=1)
+    ctx = TrainContext.from_config(cfg.budget, cfg.trainer, seed)
+    return fit_predict(source, Fold(0, TRAIN, tuple(test)), cfg.model, cfg.budget.faces_per_mesh, ctx, workers=1)
 
 
 # --- configuration --------------------------------------------------------------------------------
@@ -82,9 +84,11 @@ def test_ae_rf_uses_the_autoencoders_of_ae_nn():
     assert compose_run("model=ae_rf").model.autoencoders == compose_run("model=ae_nn").model.autoencoders
 
 
-def test_unknown_kind_is_rejected(source):
-    with pytest.raises(ValueError, match="kind='svm' is not known"):
-        fit(source, "rf", ("0",), 0, "model.kind=svm")
+def test_an_unknown_fitter_or_setting_is_one_error(source):
+    with pytest.raises(ValueError, match=r"model=rf: cannot build meshseg.training.fitters.SVMFitter"):
+        fit(source, "rf", ("0",), 0, "model._target_=meshseg.training.fitters.SVMFitter")
+    with pytest.raises(ValueError, match=r"model=rf: meshseg.training.fitters.ForestFitter does not take .*'trees'"):
+        fit(source, "rf", ("0",), 0, "+model.trees=5")
 
 
 # --- the CLI path: every baseline ends FINISHED with a test accuracy --------------------------------

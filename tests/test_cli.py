@@ -22,12 +22,12 @@ def run(*overrides, cache):
 
 
 @pytest.mark.parametrize("dataset, cls", [("synthetic", Synthetic), ("psb", PSB), ("coseg", COSEG)])
-@pytest.mark.parametrize("split, protocol", [("loo", "loo"), ("5fold", "kfold"), ("fixed", "fixed")])
+@pytest.mark.parametrize("split, protocol", [("loo", "LeaveOneOut"), ("5fold", "KFold"), ("fixed", "FixedSplit")])
 def test_config_groups_compose(dataset, cls, split, protocol, tmp_path):
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         cfg = compose("data", overrides=[f"dataset={dataset}", f"split={split}", f"paths.cache_dir={tmp_path}"])
     assert cfg.dataset._target_ == f"{cls.__module__}.{cls.__name__}"
-    assert cfg.split.protocol == protocol
+    assert cfg.split._target_ == f"meshseg.data.splits.{protocol}"
     if dataset != "synthetic":
         assert cfg.dataset.cache_dir == str(tmp_path)
 

@@ -177,10 +177,10 @@ def test_config_selects_600_features_and_one_branch():
 
 
 def test_config_builds_the_network():
-    from meshseg.training.fit import build_net
+    from hydra.utils import instantiate
 
     cfg = compose_run("model=cnn2d")
-    net = build_net(cfg.model.net, 600, 4, cfg.branches)
+    net = instantiate(cfg.model.net)(n_features=600, n_classes=4, branches=cfg.branches)  # as NetFitter does
     assert isinstance(net, ToG15CNN2D) and net(torch.randn(3, 1, 600)).shape == (3, 4)
 
 

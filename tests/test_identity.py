@@ -29,11 +29,11 @@ def identity(overrides, category):
 
 
 HASHES = {
-    "cnn1d 3B cpu psb": "747888971ecd8d63",
-    "cnn1d 1B f600 cpu psb": "e8a9a3541d79f7ad",
-    "cnn2d cpu psb": "c36d927ece80404f",
-    "rf cf0_5 loo psb": "293a8bea3b85ed36",
-    "cnn1d 3B paper fixed psb": "fce87a2db1874015",
+    "cnn1d 3B cpu psb": "1609f512c85ffa65",
+    "cnn1d 1B f600 cpu psb": "b35110850fa78cef",
+    "cnn2d cpu psb": "da8ef0a91639f165",
+    "rf cf0_5 loo psb": "221311ee1bcd0f57",
+    "cnn1d 3B paper fixed psb": "10c5049956c6d7fd",
 }
 
 

@@ -12,6 +12,7 @@ from omegaconf import OmegaConf
 
 from meshseg import CONF_DIR
 from meshseg.data.datasets import normalise_name
+from meshseg.data.splits import split_name
 
 EXPERIMENTS = REPO / "experiments"
 PAPER = Path(__file__).resolve().parents[1].parent / "shared/paper/george2018_multibranch_1dcnn.tex"
@@ -414,5 +415,5 @@ def test_column_overrides_compose():
                 assert cfg.branches == int(given["branches"]), ovs
             if given["model"] == "cnn2d":
                 assert cfg.features.name == "f600" and cfg.branches == 1
-            assert cfg.split.protocol == {"loo": "loo", "5fold": "kfold", "fixed": "fixed"}[given["split"]]
+            assert split_name(cfg.split) == given["split"]
             assert cfg.dataset._target_.rsplit(".", 1)[1].lower() == given["dataset"]

@@ -13,7 +13,9 @@ from meshseg.data import synthetic
 from meshseg.data.mesh import Mesh
 from meshseg.features.geometry import face_centers, per_face_normals
 from meshseg.metrics import area_weighted_accuracy
-from meshseg.refine import METHODS, graphcut, refine_labels
+from meshseg.refine import Argmax, GraphCutAGD, GraphCutClassic, build_refinement, graphcut, refine_labels
+
+METHODS = ("none", "graphcut_classic", "graphcut_agd")
 
 CONF = Path(__file__).resolve().parents[1] / "conf" / "refine"
 
@@ -254,11 +256,33 @@ def test_agd_features_missing_or_misshapen_name_the_mesh(noisy_cup):
 
 
 def test_methods_and_configs():
-    assert METHODS == ("none", "graphcut_classic", "graphcut_agd")
-    for name in METHODS:
+    for name, cls in zip(METHODS, (Argmax, GraphCutClassic, GraphCutAGD)):
         assert OmegaConf.load(CONF / f"{name}.yaml").name == name
+        r = build_refinement(conf(name))
+        assert type(r) is cls and r.name == name
+        assert r.needs == (("agd",) if name == "graphcut_agd" else ())  # what the run must compute for it
+    assert build_refinement(conf("graphcut_agd", omega=0.5, lam=3)).omega == 0.5
     mesh = Mesh(*hinge(-np.pi / 2))
     P = np.array([[0.6, 0.4], [0.3, 0.7]])
     np.testing.assert_array_equal(refine_labels(mesh, P, conf("none")), [0, 1])
-    with pytest.raises(ValueError, match="unknown refinement"):
+    with pytest.raises(ValueError, match="refine=crf: the config names no class"):
         refine_labels(mesh, P, OmegaConf.create({"name": "crf"}))
+    with pytest.raises(ValueError, match=r"refine=graphcut_classic: .*GraphCutClassic does not take .*'omega'"):
+        build_refinement(conf("graphcut_classic", omega=1.0))
+
+
+@pytest.mark.parametrize(
+    "name, key, value",
+    [
+        ("graphcut_agd", "lam", -1),
+        ("graphcut_agd", "eps", 1.5),
+        ("graphcut_agd", "omega", -0.1),
+        ("graphcut_agd", "feature_norm", "l2"),
+        ("graphcut_classic", "length_norm", "max"),
+        ("graphcut_classic", "theta_eps", 0),
+        ("graphcut_classic", "n_iter", 0),
+    ],
+)
+def test_a_bad_setting_is_refused_when_the_refinement_is_built(name, key, value):
+    with pytest.raises(ValueError, match=rf"refine.{key}={value} is not allowed with refine={name}: it must be"):
+        build_refinement(conf(name, **{key: value}))

@@ -4,10 +4,11 @@ import re
 
 import pytest
 from conftest import SPLIT_FILE, require
+from omegaconf import OmegaConf
 
 from meshseg.data.datasets import Synthetic
 from meshseg.data.mesh import MeshDataError
-from meshseg.data.splits import kfold, leave_one_out, make_folds, read_split_file
+from meshseg.data.splits import FixedSplit, KFold, LeaveOneOut, folds_for, kfold, leave_one_out, read_split_file
 
 IDS = [str(i) for i in range(61, 81)]
 
@@ -33,12 +34,12 @@ def test_kfold_deals_sorted_ids():
 
 def test_fixed_split_psb_published_ids(psb):
     split_file = require(SPLIT_FILE)
-    (fold,) = make_folds(psb, "Airplane", "fixed", split_file=split_file)
+    (fold,) = FixedSplit(split_file).folds(psb, "Airplane")
     assert fold.train == ("61", "62", "64", "66", "67", "69", "71", "72", "74", "76", "77", "79")
     assert fold.test == ("63", "65", "68", "70", "73", "75", "78", "80")
     blocks = read_split_file(str(split_file))
     for category in psb.categories:
-        (fold,) = make_folds(psb, category, "fixed", split_file=split_file)
+        (fold,) = FixedSplit(split_file).folds(psb, category)
         assert (len(fold.train), len(fold.test)) == (12, 8), category
         train, test = blocks[f"psb{category}"]
         assert set(fold.train) == {m.removeprefix("model") for m in train}
@@ -55,9 +56,9 @@ def test_fixed_split_errors(coseg, tmp_path):
     split_file = require(SPLIT_FILE)
     # the fragment lacks most of the published COSEG chairs
     with pytest.raises(MeshDataError, match=r"block cosegChairs names \d+ meshes the dataset lacks"):
-        make_folds(coseg, "chairs", "fixed", split_file=split_file)
+        FixedSplit(split_file).folds(coseg, "chairs")
     with pytest.raises(ValueError, match="no lists for dataset 'synthetic'"):
-        make_folds(Synthetic(meshes_per_category=2), "cup", "fixed", split_file=split_file)
+        FixedSplit(split_file).folds(Synthetic(meshes_per_category=2), "cup")
     bad = tmp_path / "s.txt"
     bad.write_text("Category psbCup\nTraining split: 3 shapes\nmodel1\nmodel2\nTest split: 1 shapes\n")
     with pytest.raises(MeshDataError, match=re.escape("block psbCup: training list declares 3 shapes but holds 2")):
@@ -67,9 +68,26 @@ def test_fixed_split_errors(coseg, tmp_path):
         read_split_file(str(bad))
 
 
-def test_make_folds_protocols():
+def test_protocols_are_classes_named_in_their_yaml():
     ds = Synthetic(categories=["cup"], meshes_per_category=7)
-    assert len(make_folds(ds, "cup", "loo")) == 7
-    assert [len(f.test) for f in make_folds(ds, "cup", "kfold", k=5)] == [2, 2, 1, 1, 1]
-    with pytest.raises(ValueError, match="unknown split protocol 'holdout'"):
-        make_folds(ds, "cup", "holdout")
+    assert len(LeaveOneOut().folds(ds, "cup")) == 7
+    assert [len(f.test) for f in KFold(5).folds(ds, "cup")] == [2, 2, 1, 1, 1]
+    assert (LeaveOneOut().name, KFold(5).name, KFold(3).name, FixedSplit("x").name) == (
+        "loo",
+        "5fold",
+        "3fold",
+        "fixed",
+    )
+    # a config names its class; the folds are the class's
+    three = OmegaConf.create({"_target_": "meshseg.data.splits.KFold", "k": 3})
+    assert [f.test for f in folds_for(ds, "cup", three)] == [f.test for f in KFold(3).folds(ds, "cup")]
+    with pytest.raises(ValueError, match=r"split: cannot build meshseg.data.splits.Holdout"):
+        folds_for(ds, "cup", OmegaConf.create({"_target_": "meshseg.data.splits.Holdout"}))
+    with pytest.raises(
+        ValueError, match=r"split: meshseg.data.splits.KFold does not take .*\['fraction', 'k'\]: .*'fraction'"
+    ):
+        folds_for(ds, "cup", OmegaConf.create({"_target_": "meshseg.data.splits.KFold", "k": 3, "fraction": 0.2}))
+    with pytest.raises(ValueError, match=r"split.k=1 is not allowed"):
+        KFold(1)
+    with pytest.raises(ValueError, match="split=fixed needs split.file"):
+        FixedSplit(None)

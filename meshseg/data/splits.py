@@ -12,8 +12,6 @@ from meshseg.data.datasets import MeshDataset, normalise_name, sort_ids
 from meshseg.data.mesh import MeshDataError
 from meshseg.errors import ConfigError
 
-PROTOCOLS = ("loo", "kfold", "fixed")
-
 
 @dataclass(frozen=True)
 class Fold:
@@ -98,42 +96,86 @@ def fixed(dataset: MeshDataset, category: str, split_file: str | os.PathLike) ->
         raise MeshDataError(
             split_file, f"block {match[0]} names {len(missing)} meshes the dataset lacks: {missing[:8]}"
         )
-    fold = Fold(0, tuple(sort_ids(train)), tuple(sort_ids(test)))
-    return [fold]
+    return [Fold(0, tuple(sort_ids(train)), tuple(sort_ids(test)))]
 
 
-def make_folds(
-    dataset: MeshDataset, category: str, protocol: str, k: int = 5, split_file: str | os.PathLike | None = None
-) -> list[Fold]:
-    """Folds of `category` under `protocol`, checked: train and test disjoint, together the category."""
-    ids = dataset.mesh_ids(category)
-    if protocol == "loo":
-        folds = leave_one_out(ids)
-    elif protocol == "kfold":
-        folds = kfold(ids, k)
-    elif protocol == "fixed":
-        if split_file is None:
-            raise ConfigError("split=fixed needs split.file")
-        folds = fixed(dataset, category, split_file)
-    else:
-        raise ConfigError(f"unknown split protocol {protocol!r}; known: {list(PROTOCOLS)}")
-    for fold in folds:
-        overlap = set(fold.train) & set(fold.test)
-        if overlap:
-            raise ValueError(f"{category} fold {fold.index}: meshes {sorted(overlap)} are in train and test")
-        uncovered = set(ids) - set(fold.train) - set(fold.test)
-        if uncovered:
-            raise ValueError(
-                f"{category} fold {fold.index}: meshes {sort_ids(uncovered)} are in neither train nor test"
-            )
-    return folds
+class SplitProtocol:
+    """A train/test protocol, named by `_target_` in `conf/split/*.yaml`: `folds(dataset, category)`
+    gives the checked folds of one category, `name` is the run's `split` tag. A new protocol is a
+    subclass with `name` and `make`, and a YAML file naming it."""
+
+    name: str
+
+    def make(self, dataset: MeshDataset, category: str) -> list[Fold]:
+        raise NotImplementedError
+
+    def folds(self, dataset: MeshDataset, category: str) -> list[Fold]:
+        """The folds of `category`, checked: train and test disjoint, together the category."""
+        ids = dataset.mesh_ids(category)
+        folds = self.make(dataset, category)
+        for fold in folds:
+            overlap = set(fold.train) & set(fold.test)
+            if overlap:
+                raise ValueError(f"{category} fold {fold.index}: meshes {sorted(overlap)} are in train and test")
+            uncovered = set(ids) - set(fold.train) - set(fold.test)
+            if uncovered:
+                raise ValueError(
+                    f"{category} fold {fold.index}: meshes {sort_ids(uncovered)} are in neither train nor test"
+                )
+        return folds
+
+
+class LeaveOneOut(SplitProtocol):
+    """One fold per mesh (paper Table 1)."""
+
+    name = "loo"
+
+    def make(self, dataset: MeshDataset, category: str) -> list[Fold]:
+        return leave_one_out(dataset.mesh_ids(category))
+
+
+class KFold(SplitProtocol):
+    """Meshes sorted by id and dealt round-robin into k folds (paper Tables 2 and 3)."""
+
+    def __init__(self, k: int = 5):
+        if not (isinstance(k, int) and k >= 2):
+            raise ConfigError(f"split.k={k} is not allowed: it must be an integer >= 2")
+        self.k = k
+        self.name = f"{k}fold"
+
+    def make(self, dataset: MeshDataset, category: str) -> list[Fold]:
+        return kfold(dataset.mesh_ids(category), self.k)
+
+
+class FixedSplit(SplitProtocol):
+    """ShapePFCN's published lists (paper Table 4): one fold per category, from `file`."""
+
+    name = "fixed"
+
+    def __init__(self, file: str | os.PathLike | None = None):
+        if not file:
+            raise ConfigError("split=fixed needs split.file (ShapePFCN's split list)")
+        self.file = file
+
+    def make(self, dataset: MeshDataset, category: str) -> list[Fold]:
+        return fixed(dataset, category, self.file)
+
+
+def build_split(split) -> SplitProtocol:
+    """The protocol a split config (`conf/split/*.yaml`) names."""
+    from meshseg.instantiate import build
+
+    protocol = build(split, "split")
+    if not isinstance(protocol, SplitProtocol):
+        raise ConfigError(f"split: {split._target_} is not a meshseg.data.splits.SplitProtocol")
+    return protocol
 
 
 def split_name(split) -> str:
     """A split config's tag: loo, 5fold, fixed."""
-    return f"{split.k}fold" if split.protocol == "kfold" else split.protocol
+    return build_split(split).name
 
 
 def folds_for(dataset: MeshDataset, category: str, split) -> list[Fold]:
     """The folds a split config (conf/split) gives one category."""
-    return make_folds(dataset, category, split.protocol, k=split.get("k", 5), split_file=split.get("file"))
+    return build_split(split).folds(dataset, category)

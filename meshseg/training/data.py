@@ -18,7 +18,7 @@ from meshseg.data.datasets import MeshDataset
 from meshseg.data.mesh import Mesh
 from meshseg.features.cache import FeatureCache
 from meshseg.features.rings import ring_means
-from meshseg.features.sets import FeatureSet, check_finite, compute_dataset
+from meshseg.features.sets import FeatureSet, check_finite, compute_dataset, parse_entry
 
 
 @dataclass
@@ -59,6 +59,17 @@ class FeatureSource:
         check_finite(X, self.features, mesh.source)
         return mesh, ring_means(X, mesh.faces, self.branches, self.ring_adjacency)
 
+    def groups(self, mesh: Mesh, names: tuple[str, ...]) -> np.ndarray | None:
+        """Other feature groups of a mesh (e.g. a refinement's AGD), with the run's parameters for them
+        and cached like every group; None when `names` is empty."""
+        if not names:
+            return None
+        params = {g: self.features.params[g] for g in names if g in self.features.params}
+        fs = FeatureSet("+".join(names), tuple(parse_entry(g) for g in names), params)
+        X = fs.compute(mesh.vertices, mesh.faces, mesh.content_hash, FeatureCache(self.cache_root))
+        check_finite(X, fs, mesh.source)
+        return X
+
 
 class Standardiser:
     """Per (branch, feature) zero mean and unit variance, fitted on training faces. A constant
@@ -83,6 +94,7 @@ class TrainSet:
     y: np.ndarray  # (n,) int64
     standardiser: Standardiser
     mesh_faces: int  # faces of the training meshes before sampling
+    n_classes: int  # the category's labels (a class may have no training face)
 
 
 def sample_faces(n_faces: int, per_mesh: int | None, rng: np.random.Generator) -> np.ndarray:
@@ -105,7 +117,8 @@ def build_train(source: FeatureSource, mesh_ids, faces_per_mesh: int | None, see
         total += mesh.n_faces
     X = np.concatenate(xs)
     standardiser = Standardiser(X)
-    return TrainSet(standardiser(X), np.concatenate(ys).astype(np.int64), standardiser, total)
+    n_classes = len(source.dataset.label_names(source.category))
+    return TrainSet(standardiser(X), np.concatenate(ys).astype(np.int64), standardiser, total, n_classes)
 
 
 def iter_test_inputs(source: FeatureSource, mesh_ids, standardiser: Standardiser) -> Iterator[tuple[Mesh, np.ndarray]]:

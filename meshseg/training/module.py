@@ -67,3 +67,14 @@ class Segmenter(pl.LightningModule):
         finally:
             self.train(was_training)
         return torch.cat(out).numpy().astype(np.float32, copy=False)
+
+
+class StageSegmenter(Segmenter):
+    """Segmenter whose logged names carry a stage prefix (a multi-stage fitter's softmax stage)."""
+
+    def __init__(self, net: nn.Module, epochs: int, prefix: str = "", **optim):
+        super().__init__(net, epochs, **optim)
+        self.prefix = prefix
+
+    def log(self, name, value, *args, **kwargs):
+        return super().log(self.prefix + name, value, *args, **kwargs)

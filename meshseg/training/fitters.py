@@ -1,0 +1,97 @@
+"""Fitters: how a model is trained on a fold's faces. Each is a class named by `_target_` in
+`conf/model/*.yaml`, shaped like a scikit-learn estimator: its hyperparameters (the YAML's keys) and the
+run's `TrainContext` go to the constructor, `fit(train)` trains on a `TrainSet` and returns the fitter,
+`predict_proba(X)` gives (n, classes) float32 for standardised inputs (n, branches, features).
+
+After `fit`, `parts_` holds the trained parts by stage name (net, ae1, forest, ...) and `epochs_` the
+passes made over the training faces by all network stages. A new method is one such class (or, for a
+network, one `nn.Module` under `NetFitter`) and one YAML file: see README "Adding a method".
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+from torch import nn
+
+from meshseg.errors import ConfigError
+from meshseg.models.forest import RandomForest
+from meshseg.training.context import TrainContext
+from meshseg.training.data import TrainSet
+from meshseg.training.loop import train_stage
+from meshseg.training.module import Segmenter
+
+
+class Fitter:
+    """Base of every fitter: keeps the run's context; subclasses implement `fit` and `predict_proba`."""
+
+    def __init__(self, context: TrainContext):
+        self.context = context
+        self.parts_: dict[str, object] = {}
+        self.epochs_ = 0
+
+    def fit(self, train: TrainSet) -> Fitter:
+        raise NotImplementedError
+
+    def predict_proba(self, X: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+
+class NetFitter(Fitter):
+    """One network trained with cross-entropy by the paper's optimiser (`Segmenter`, §3.4): cnn1d,
+    cnn2d, pca_nn. `net` builds the network for the fold's sizes (the YAML's `net:` node, a partial:
+    `net(n_features=, n_classes=, branches=)`); a network with frozen data-fitted layers (pca_nn's PCA)
+    has them fitted first, on the training faces only, by its `fit_frozen`."""
+
+    def __init__(self, net: Callable[..., nn.Module], optim: dict, context: TrainContext):
+        super().__init__(context)
+        self.net, self.optim = net, dict(optim)
+
+    def fit(self, train: TrainSet) -> NetFitter:
+        ctx = self.context
+        net = self.net(n_features=train.X.shape[2], n_classes=train.n_classes, branches=train.X.shape[1])
+        if hasattr(net, "fit_frozen"):
+            net.fit_frozen(train.X)
+        self.module_ = Segmenter(net, ctx.epochs, **self.optim)
+        train_stage(self.module_, train, ctx)
+        self.module_.to(ctx.device)
+        self.parts_, self.epochs_ = {"net": net}, ctx.epochs
+        return self
+
+    def predict_proba(self, X: np.ndarray) -> np.ndarray:
+        return self.module_.predict_proba(X, self.context.predict_batch_size)
+
+
+def make_forest(forest: dict, n_classes: int, ctx: TrainContext) -> RandomForest:
+    """The configured forest; its worker count is the trainer's thread count (all cores when null)."""
+    return RandomForest(n_classes, **forest, n_jobs=ctx.threads or -1, seed=ctx.seed)
+
+
+class ForestFitter(Fitter):
+    """A random forest on the (standardised, single-scale) features of the training faces (rf: the
+    paper's CF figure). `forest`: scikit-learn RandomForestClassifier settings."""
+
+    def __init__(self, forest: dict, context: TrainContext):
+        super().__init__(context)
+        self.forest = dict(forest)
+
+    def fit(self, train: TrainSet) -> ForestFitter:
+        self.forest_ = make_forest(self.forest, train.n_classes, self.context).fit(train.X, train.y)
+        self.parts_, self.epochs_ = {"forest": self.forest_}, 1
+        return self
+
+    def predict_proba(self, X: np.ndarray) -> np.ndarray:
+        return self.forest_.predict_proba(X)
+
+
+def build_fitter(model_cfg, context: TrainContext) -> Fitter:
+    """The fitter a `conf/model/*.yaml` node names, with the run's context."""
+    from meshseg.instantiate import build
+
+    fitter = build(model_cfg, f"model={model_cfg.get('name', '?')}", context=context)
+    if not isinstance(fitter, Fitter):
+        raise ConfigError(
+            f"model={model_cfg.get('name', '?')}: {model_cfg._target_} is not a meshseg.training.fitters.Fitter"
+        )
+    return fitter

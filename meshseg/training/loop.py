@@ -1,0 +1,51 @@
+"""The generic Lightning plumbing every network stage shares: a Trainer as the context says, one
+`fit` over a fold's training faces, and a network applied to inputs in batches."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytorch_lightning as pl
+import torch
+from torch import nn
+
+from meshseg.training.context import TrainContext
+from meshseg.training.data import FoldDataModule, TrainSet
+
+
+def make_trainer(ctx: TrainContext) -> pl.Trainer:
+    return pl.Trainer(
+        max_epochs=ctx.epochs,
+        accelerator=ctx.accelerator,
+        devices=ctx.devices,
+        precision=ctx.precision,
+        logger=ctx.logger or False,
+        enable_checkpointing=False,
+        enable_progress_bar=ctx.progress_bar,
+        enable_model_summary=False,
+        num_sanity_val_steps=0,
+        log_every_n_steps=1,
+    )
+
+
+def train_stage(module: pl.LightningModule, data: TrainSet, ctx: TrainContext) -> None:
+    """Fit `module` on `data` for the context's epochs, mini-batches shuffled with a seeded generator."""
+    trainer = make_trainer(ctx)
+    with warnings.catch_warnings():
+        # One in-memory tensor dataset: DataLoader worker processes would only add copies.
+        warnings.filterwarnings("ignore", message=".*does not have many workers.*")
+        warnings.filterwarnings("ignore", message=".*LeafSpec.*is deprecated")  # Lightning 2.6 on torch 2.13
+        trainer.fit(module, datamodule=FoldDataModule(data, ctx.batch_size, ctx.seed))
+
+
+@torch.no_grad()
+def transform(fn: nn.Module, X: np.ndarray, batch_size: int, device: torch.device) -> np.ndarray:
+    """fn applied to the rows of X in batches, in eval mode on `device`: (n, ...) float32."""
+    was_training = fn.training
+    fn.to(device).eval()
+    try:
+        out = [fn(torch.from_numpy(X[i : i + batch_size]).to(device)).cpu() for i in range(0, len(X), batch_size)]
+    finally:
+        fn.train(was_training)  # a later stage trains these layers again
+    return torch.cat(out).numpy().astype(np.float32, copy=False)
