@@ -25,6 +25,7 @@ from meshseg.data.splits import Fold, build_split, folds_for, split_name
 from meshseg.errors import ConfigError, MeshsegError
 from meshseg.features.sets import FeatureSet
 from meshseg.refine import build_refinement
+from meshseg.timing import Timings
 
 log = logging.getLogger("meshseg.run")
 
@@ -185,26 +186,30 @@ def run(cfg: DictConfig) -> float:
         source = FeatureSource(dataset, category, features, cfg.paths.cache_dir, cfg.branches, cfg.ring_adjacency)
         ctx = TrainContext.from_config(cfg.budget, cfg.trainer, cfg.seed, tracker.lightning_logger(run_id))
         preds = fit_predict(source, fold, cfg.model, cfg.budget.faces_per_mesh, ctx, cfg.workers)
+        timings = Timings(preds.timings)
         # refine: the refinement's own per-mesh inputs (e.g. AGD) come from the feature cache
-        raw = [p.argmax(axis=1) for p in preds.probabilities]
-        labels = [
-            refinement(m, p, source.groups(m, refinement.needs)) for m, p in zip(preds.meshes, preds.probabilities)
-        ]
+        with timings("refine"):
+            raw = [p.argmax(axis=1) for p in preds.probabilities]
+            labels = [
+                refinement(m, p, source.groups(m, refinement.needs)) for m, p in zip(preds.meshes, preds.probabilities)
+            ]
         # score
         rows = mesh_scores(preds.meshes, raw, labels)
         metrics = {
             FoldRecord.ACC: np.mean([r["acc"] for r in rows]),
             FoldRecord.ACC_RAW: np.mean([r["acc_raw"] for r in rows]),
-            **{f"time_{k}_s": v for k, v in preds.timings.items()},
             **{f"n_{k}": v for k, v in preds.counts.items()},
             "train_samples_per_s": preds.counts["train_samples"] * preds.counts["epochs"] / preds.timings["train"],
+            "predict_faces_per_s": preds.counts["test_faces"] / max(preds.timings.get("predict", 0.0), 1e-9),
         }
-        # record
-        tracker.log_metrics(run_id, metrics)
-        arrays = FoldRecord.predictions(preds.meshes, preds.probabilities, raw, labels)
-        tracker.log_fold(run_id, OmegaConf.to_yaml(config), rows, arrays)
+        # record (the timings last, so that they include the recording itself)
+        with timings("log"):
+            arrays = FoldRecord.predictions(preds.meshes, preds.probabilities, raw, labels)
+            tracker.log_fold(run_id, OmegaConf.to_yaml(config), rows, arrays)
         if cfg.tracking.renders:
-            tracker.log_pictures(run_id, preds.meshes, labels, rows, int(cfg.tracking.renders))
+            with timings("pictures"):
+                tracker.log_pictures(run_id, preds.meshes, labels, rows, int(cfg.tracking.renders))
+        tracker.log_metrics(run_id, {**metrics, **{f"time_{k}_s": v for k, v in timings.items()}})
     log.info(
         "done: %s test_acc %.4f (raw %.4f), train %.1f s, run %s",
         name,

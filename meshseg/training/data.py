@@ -19,6 +19,7 @@ from meshseg.data.mesh import Mesh
 from meshseg.features.cache import FeatureCache
 from meshseg.features.rings import ring_means
 from meshseg.features.sets import FeatureSet, check_finite, compute_dataset, parse_entry
+from meshseg.timing import Timings
 
 
 @dataclass
@@ -32,10 +33,12 @@ class FeatureSource:
     branches: int = 3
     ring_adjacency: str = "edge"
     _meshes: dict = field(default_factory=dict, repr=False)  # loaded once per fold (synthetic ones are generated)
+    timings: Timings = field(default_factory=Timings, repr=False)  # mesh, load (cache reads), rings (X^k)
 
     def mesh(self, mesh_id: str) -> Mesh:
         if mesh_id not in self._meshes:
-            self._meshes[mesh_id] = self.dataset.load(self.category, mesh_id)
+            with self.timings("mesh"):
+                self._meshes[mesh_id] = self.dataset.load(self.category, mesh_id)
         return self._meshes[mesh_id]
 
     def prepare(self, mesh_ids, workers: int = 2) -> int:
@@ -55,9 +58,11 @@ class FeatureSource:
     def load(self, mesh_id: str) -> tuple[Mesh, list[np.ndarray]]:
         """The mesh and its [X^1, ..., X^B], each (faces, features) float32."""
         mesh = self.mesh(mesh_id)
-        X = self.features.compute(mesh.vertices, mesh.faces, mesh.content_hash, FeatureCache(self.cache_root))
-        check_finite(X, self.features, mesh.source)
-        return mesh, ring_means(X, mesh.faces, self.branches, self.ring_adjacency)
+        with self.timings("load"):
+            X = self.features.compute(mesh.vertices, mesh.faces, mesh.content_hash, FeatureCache(self.cache_root))
+            check_finite(X, self.features, mesh.source)
+        with self.timings("rings"):
+            return mesh, ring_means(X, mesh.faces, self.branches, self.ring_adjacency)
 
     def groups(self, mesh: Mesh, names: tuple[str, ...]) -> np.ndarray | None:
         """Other feature groups of a mesh (e.g. a refinement's AGD), with the run's parameters for them
@@ -66,8 +71,9 @@ class FeatureSource:
             return None
         params = {g: self.features.params[g] for g in names if g in self.features.params}
         fs = FeatureSet("+".join(names), tuple(parse_entry(g) for g in names), params)
-        X = fs.compute(mesh.vertices, mesh.faces, mesh.content_hash, FeatureCache(self.cache_root))
-        check_finite(X, fs, mesh.source)
+        with self.timings("load"):
+            X = fs.compute(mesh.vertices, mesh.faces, mesh.content_hash, FeatureCache(self.cache_root))
+            check_finite(X, fs, mesh.source)
         return X
 
 
@@ -115,10 +121,12 @@ def build_train(source: FeatureSource, mesh_ids, faces_per_mesh: int | None, see
         xs.append(np.stack([X[idx] for X in scales], axis=1))
         ys.append(mesh.labels[idx])
         total += mesh.n_faces
-    X = np.concatenate(xs)
-    standardiser = Standardiser(X)
+    with source.timings("standardise"):
+        X = np.concatenate(xs)
+        standardiser = Standardiser(X)
+        X = standardiser(X)
     n_classes = len(source.dataset.label_names(source.category))
-    return TrainSet(standardiser(X), np.concatenate(ys).astype(np.int64), standardiser, total, n_classes)
+    return TrainSet(X, np.concatenate(ys).astype(np.int64), standardiser, total, n_classes)
 
 
 def iter_test_inputs(source: FeatureSource, mesh_ids, standardiser: Standardiser) -> Iterator[tuple[Mesh, np.ndarray]]:
@@ -126,7 +134,9 @@ def iter_test_inputs(source: FeatureSource, mesh_ids, standardiser: Standardiser
     training statistics; one mesh in memory at a time."""
     for mesh_id in mesh_ids:
         mesh, scales = source.load(mesh_id)
-        yield mesh, standardiser(np.stack(scales, axis=1))
+        with source.timings("standardise"):
+            X = standardiser(np.stack(scales, axis=1))
+        yield mesh, X
 
 
 class _Rows(Dataset):

@@ -5,7 +5,6 @@ fitted on them, then class probabilities for every test face."""
 from __future__ import annotations
 
 import logging
-import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -24,7 +23,7 @@ log = logging.getLogger(__name__)
 class FoldPredictions:
     meshes: list[Mesh]  # the test meshes, in fold order
     probabilities: list[np.ndarray]  # per mesh (faces, classes) float32
-    timings: dict[str, float] = field(default_factory=dict)  # seconds: features, train, predict
+    timings: dict[str, float] = field(default_factory=dict)  # seconds per phase (see fit_predict)
     counts: dict[str, int] = field(default_factory=dict)  # train samples, train/test faces, epochs
     parts: dict[str, object] = field(default_factory=dict)  # the fitted model's parts by stage name
 
@@ -34,13 +33,15 @@ def fit_predict(
 ) -> FoldPredictions:
     """Features (from the cache or computed), the model fitted on the fold's training meshes
     (`faces_per_mesh` sampled from each, all when None), then class probabilities for every face of
-    every test mesh."""
+    every test mesh.
+
+    Timings (seconds): `features` (computing what the cache lacks), `mesh` (reading meshes), `load`
+    (reading cached features), `rings` (X^1..X^B), `standardise`, `train`, `predict` (the model only)."""
     fitter = build_fitter(model_cfg, ctx)  # its settings checked before any work
-    timings: dict[str, float] = {}
-    t0 = time.perf_counter()
-    source.prepare([*fold.train, *fold.test], workers)
+    timings = source.timings
+    with timings("features"):
+        source.prepare([*fold.train, *fold.test], workers)
     train = build_train(source, fold.train, faces_per_mesh, ctx.seed)
-    timings["features"] = time.perf_counter() - t0
     log.info(
         "fold %d: %d training faces sampled from %d (%d meshes), %d classes",
         fold.index,
@@ -51,20 +52,18 @@ def fit_predict(
     )
 
     pl.seed_everything(ctx.seed, workers=True, verbose=False)
-    t0 = time.perf_counter()
-    fitter.fit(train)
-    timings["train"] = time.perf_counter() - t0
+    with timings("train"):
+        fitter.fit(train)
 
-    t0 = time.perf_counter()
     meshes, probabilities = [], []
     for mesh, X in iter_test_inputs(source, fold.test, train.standardiser):
         meshes.append(mesh)
-        probabilities.append(fitter.predict_proba(X))
-    timings["predict"] = time.perf_counter() - t0
+        with timings("predict"):
+            probabilities.append(fitter.predict_proba(X))
     counts = {
         "train_samples": len(train.y),
         "train_faces": train.mesh_faces,
         "test_faces": sum(m.n_faces for m in meshes),
         "epochs": fitter.epochs_,
     }
-    return FoldPredictions(meshes, probabilities, timings, counts, fitter.parts_)
+    return FoldPredictions(meshes, probabilities, dict(timings), counts, fitter.parts_)
