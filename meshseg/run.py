@@ -172,7 +172,14 @@ def run(cfg: DictConfig) -> float:
     if done is not None:
         return _skipped(name, chash, done)
     tags = FoldRecord.tags(
-        cfg, dataset=dataset, category=category, fold=fold, features=features.name, split=split, config_hash=chash
+        cfg,
+        dataset=dataset,
+        category=category,
+        fold=fold,
+        features=features.name,
+        split=split,
+        config_hash=chash,
+        overrides=job_overrides(),
     )
     log.info("run: %s (config %s, %d train / %d test meshes)", name, chash, len(fold.train), len(fold.test))
     run_id = None
@@ -219,6 +226,13 @@ def run(cfg: DictConfig) -> float:
         run_id,
     )
     return float(metrics[FoldRecord.ACC])
+
+
+def job_overrides() -> list[str] | None:
+    """The overrides Hydra composed this job from (a sweep job's own included); None outside a Hydra app."""
+    from hydra.core.hydra_config import HydraConfig
+
+    return list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else None
 
 
 def setup_trainer(trainer: DictConfig) -> None:

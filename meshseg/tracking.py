@@ -64,8 +64,10 @@ class FoldRecord:
     PREDICTION_ARRAYS = {"labels_": "int16", "labels_raw_": "int16", "probs_": "float16"}
 
     @staticmethod
-    def tags(cfg, *, dataset, category: str, fold, features: str, split: str, config_hash: str) -> dict:
-        """The run's tags: TAGS (what the report selects by) and the seed and accelerator."""
+    def tags(cfg, *, dataset, category: str, fold, features: str, split: str, config_hash: str, overrides=None) -> dict:
+        """The run's tags: TAGS (what the report selects by), the seed and accelerator, and provenance: the
+        fold's mesh ids and the Hydra overrides the run was launched with (so that `meshseg.results`
+        can check a shipped record against the code), the machine and the package versions."""
         return {
             "dataset": dataset.name,
             "category": category,
@@ -81,6 +83,10 @@ class FoldRecord:
             "data_hash": dataset.data_hash,
             "seed": cfg.seed,
             "accelerator": cfg.trainer.accelerator,
+            "fold_ids": json.dumps({"train": list(fold.train), "test": list(fold.test)}),
+            **({"overrides": json.dumps(list(overrides))} if overrides is not None else {}),
+            "machine": machine(cfg.trainer.accelerator),
+            "versions": versions(),
         }
 
     @staticmethod
@@ -128,6 +134,40 @@ def fold_identity(cfg, category: str, fold, data_hash: str) -> tuple[dict, str]:
     config.update(category=category, fold=fold.index)
     extra = {"data_hash": data_hash, "train": list(fold.train), "test": list(fold.test)}
     return config, config_hash(config, config["tracking"]["hash_exclude"], extra)
+
+
+def machine(accelerator: str = "cpu") -> str:
+    """What ran it: the CPU model and its cores, and the GPU where one trained."""
+    import os
+    import platform
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), cpu)
+    except OSError:
+        pass
+    text = f"{cpu}, {os.cpu_count()} cores"
+    if accelerator == "gpu":
+        import torch
+
+        if torch.cuda.is_available():
+            text += f", {torch.cuda.get_device_name()}"
+    return text
+
+
+def versions() -> str:
+    """The versions of Python and the packages that shape a result."""
+    import platform
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = [f"python {platform.python_version()}"]
+    for name in ("meshseg", "torch", "numpy", "scipy", "scikit-learn", "pytorch-lightning", "mlflow"):
+        try:
+            out.append(f"{name} {version(name)}")
+        except PackageNotFoundError:
+            pass
+    return ", ".join(out)
 
 
 def git_sha() -> str:
@@ -417,9 +457,12 @@ class Tracker:
         items = [Metric(k, float(v), now, 0) for k, v in metrics.items()]
         _retry(lambda: self.client.log_batch(run_id, metrics=items), "log metrics")
 
-    def log_fold(self, run_id: str, config_yaml: str, rows: list[dict], predictions: dict[str, np.ndarray]) -> None:
+    def log_fold(
+        self, run_id: str, config_yaml: str, rows: list[dict], predictions: dict[str, np.ndarray] | None
+    ) -> None:
         """The fold's record as `FoldRecord` names it: the config, the per-mesh table (its columns in
-        FoldRecord's order) and the per-face predictions, each array cast to its FoldRecord dtype."""
+        FoldRecord's order) and the per-face predictions, each array cast to its FoldRecord dtype (None: a
+        run imported from `results/`, which carries no per-face arrays)."""
         R = FoldRecord
         with tempfile.TemporaryDirectory() as tmp:
             d = Path(tmp)
@@ -430,14 +473,16 @@ class Tracker:
             writer.writerows(rows)
             (d / R.PER_MESH).write_text(buf.getvalue())
             arrays = {}
-            for key, a in predictions.items():
+            for key, a in (predictions or {}).items():
                 prefix = max((p for p in R.PREDICTION_ARRAYS if key.startswith(p)), key=len, default=None)
                 if prefix is None:
                     raise KeyError(f"prediction array {key!r} is not in the fold record: {list(R.PREDICTION_ARRAYS)}")
                 arrays[key] = np.asarray(a).astype(R.PREDICTION_ARRAYS[prefix], copy=False)
-            np.savez_compressed(d / R.PREDICTIONS, **arrays)
-            for name in (R.CONFIG, R.PER_MESH, R.PREDICTIONS):
+            for name in (R.CONFIG, R.PER_MESH):
                 self.client.log_artifact(run_id, str(d / name))
+            if predictions is not None:
+                np.savez_compressed(d / R.PREDICTIONS, **arrays)
+                self.client.log_artifact(run_id, str(d / R.PREDICTIONS))
 
     def log_pictures(self, run_id: str, meshes, labels, rows: list[dict], n: int) -> None:
         """Artifacts the MLflow UI shows: renders/<mesh>.png (predicted beside ground truth) for up to

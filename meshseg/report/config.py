@@ -157,6 +157,10 @@ def check_config(cfg: DictConfig) -> None:
         raise ConfigError(f"report.seed={s.seed} must be an integer >= 0")
     if s.sets is not None and not isinstance(s.sets, ListConfig):
         raise ConfigError(f"report.sets={s.sets} must be a list of set or category names, e.g. report.sets=[Teddy]")
+    if s.paired is not None and not (
+        isinstance(s.paired, ListConfig) and len(s.paired) == 2 and all(isinstance(k, str) for k in s.paired)
+    ):
+        raise ConfigError(f"report.paired={s.paired} must be two column keys, e.g. report.paired=[cnn1d,K2010]")
     for key in ("log", *(("dry_run",) if "dry_run" in s else ())):
         if not isinstance(s[key], bool):
             raise ConfigError(f"report.{key}={s[key]} must be true or false")

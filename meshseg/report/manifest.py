@@ -18,11 +18,24 @@ class ManifestError(errors.ManifestError):
         super().__init__(f"{path}: {problem}")
 
 
+#: formats of predictions on disk a column can score (`predictions: {path, format}`)
+PREDICTION_FORMATS = ("psb_labels",)
+
+
+@dataclass(frozen=True)
+class Predictions:
+    """Labellings on disk, one file per mesh, scored like a run's predictions (e.g. Kalogerakis 2010's)."""
+
+    path: str  # a folder or an archive (unpacked once into the cache)
+    format: str  # psb_labels: `<id>.lab`, L-PSB's `<id>_labels.txt` format (label name, then 1-based faces)
+
+
 @dataclass(frozen=True)
 class Column:
     key: str
     label: str
     overrides: tuple[str, ...] | None  # None: the paper's number only, no runs (e.g. ShapePFCN)
+    predictions: Predictions | None = None  # scored from disk instead of from runs
 
 
 @dataclass(frozen=True)
@@ -103,7 +116,18 @@ def load_manifest(path: str | Path) -> Manifest:
             raise ManifestError(path, f"columns[{i}]: needs key and label")
         over = c.get("overrides")
         over = None if over is None else _overrides(over, path, f"column {c['key']}")
-        columns.append(Column(str(c["key"]), str(c["label"]), over))
+        pred = c.get("predictions")
+        if pred is not None:
+            if (
+                not isinstance(pred, dict)
+                or set(pred) != {"path", "format"}
+                or pred["format"] not in PREDICTION_FORMATS
+            ):
+                raise ManifestError(
+                    path, f"column {c['key']}: predictions must be {{path: ..., format: one of {PREDICTION_FORMATS}}}"
+                )
+            pred, over = Predictions(str(pred["path"]), str(pred["format"])), over or ()
+        columns.append(Column(str(c["key"]), str(c["label"]), over, pred))
     if not columns or len({c.key for c in columns}) != len(columns):
         raise ManifestError(path, "columns must be a non-empty list with distinct keys")
     n = len(columns)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import logging
 import re
 from pathlib import Path
 
@@ -13,10 +14,43 @@ from meshseg.report.manifest import Manifest
 from meshseg.report.table import Table, collect
 from meshseg.report.write import markdown, write_report
 
+log = logging.getLogger("meshseg.report")
+
+
+def import_results(manifest: Manifest, cfg: DictConfig) -> None:
+    """The shipped records under `report.results` (`results/<dataset>/...`) of the datasets the manifest
+    uses, imported into the runs' store (idempotent: records already there are skipped), so that a fresh
+    clone reports from `results/` with no training."""
+    from hydra import compose
+
+    from meshseg.results import import_records
+    from meshseg.tracking import Tracker
+
+    root = cfg.report.get("results")
+    if not root or not Path(root).is_dir():
+        return
+    overrides = [*manifest.overrides, *run_overrides(cfg)]
+    given = [*overrides, *(o for g in manifest.groups for o in g.overrides)]
+    given += [o for c in manifest.columns for o in c.overrides or ()]
+    with hydra_scope():
+        run_cfg = compose("run", overrides=overrides)
+    datasets = {o.split("=", 1)[1] for o in given if o.startswith("dataset=")}
+    datasets = datasets or {run_cfg.dataset._target_.rsplit(".", 1)[1].lower()}  # PSB -> psb
+    t = run_cfg.tracking
+    tracker = Tracker(t.uri, t.experiment, t.artifact_dir)
+    for name in sorted(datasets):
+        if (Path(root) / name).is_dir():
+            rep = import_records(tracker, Path(root) / name)
+            if rep.imported or rep.refused:
+                log.info("results from %s/%s: %s", root, name, rep.summary())
+            for path, why in rep.refused:
+                log.warning("not imported: %s: %s", path, why)
+
 
 def build(manifest: Manifest, cfg: DictConfig) -> Table:
     """The manifest's table from the runs, with the app config's run overrides and `report.*` settings."""
     s = cfg.report
+    import_results(manifest, cfg)
     sets = None if s.sets is None else list(s.sets)
     return collect(
         manifest,
@@ -26,6 +60,7 @@ def build(manifest: Manifest, cfg: DictConfig) -> Table:
         level=float(s.level),
         seed=int(s.seed),
         sets=sets,
+        paired=None if s.get("paired") is None else tuple(s.paired),
     )
 
 

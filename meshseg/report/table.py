@@ -32,6 +32,7 @@ class Cell:
     column: Column
     published: float | None
     accs: np.ndarray | None = None  # per test mesh, %, over all folds (a complete set cell)
+    meshes: tuple[str, ...] = ()  # the test mesh of each of `accs`
     folds: int = 0  # folds the split has
     missing: tuple[int, ...] = ()  # folds without a FINISHED run
     problem: str | None = None  # why no run can exist (dataset lacks the category, ...)
@@ -80,6 +81,25 @@ class Row:
 
 
 @dataclass
+class PairedRow:
+    label: str
+    kind: str  # set | average | total
+    n_meshes: int  # test meshes both columns scored (sets: matched by mesh id)
+    value: float | None = None  # mean per-mesh difference a - b (averages: the mean over sets), points
+    ci: tuple[float, float] | None = None
+    why: str = ""  # why there is no value
+
+
+@dataclass
+class Paired:
+    """Two columns compared mesh by mesh: a - b per test mesh, its mean and a paired bootstrap interval."""
+
+    a: Column
+    b: Column
+    rows: list[PairedRow]
+
+
+@dataclass
 class Table:
     manifest: Manifest
     rows: list[Row]
@@ -87,6 +107,7 @@ class Table:
     metric: str
     level: float
     budget_text: dict[str, str] = field(default_factory=dict)  # budget name -> what it trains on
+    paired: Paired | None = None
 
     @property
     def budgets(self) -> list[str]:
@@ -152,13 +173,13 @@ class _Runs:
             if not token:
                 break
 
-    def mesh_accuracies(self, run) -> list[float]:
-        """The run's per-test-mesh accuracies (%) from its per-mesh table (FoldRecord.PER_MESH)."""
+    def mesh_accuracies(self, run) -> list[tuple[str, float]]:
+        """(mesh id, accuracy in %) of each test mesh of the run, from its per-mesh table (FoldRecord.PER_MESH)."""
         try:
             with tempfile.TemporaryDirectory() as tmp:
                 path = self.client.download_artifacts(run.info.run_id, FoldRecord.PER_MESH, tmp)
                 with open(path, newline="") as f:
-                    return [100.0 * float(row[self.metric]) for row in csv.DictReader(f)]
+                    return [(row["mesh"], 100.0 * float(row[self.metric])) for row in csv.DictReader(f)]
         except Exception as e:  # a FINISHED run without a readable table is damage in the store, not a missing fold
             raise TrackingError(
                 f"run {run.info.run_id} ({run.info.run_name}): cannot read {self.metric} from "
@@ -192,7 +213,23 @@ def _fill(cell: Cell, category: str, dataset, split, resolved: dict, runs: _Runs
     cell.folds, cell.missing = len(folds), tuple(missing)
     cell.run_ids = tuple(r.info.run_id for r in found)
     if not missing:
-        cell.accs = np.array([a for r in found for a in runs.mesh_accuracies(r)])
+        scored = [pair for r in found for pair in runs.mesh_accuracies(r)]
+        cell.meshes, cell.accs = tuple(m for m, _ in scored), np.array([a for _, a in scored])
+
+
+def _fill_predictions(cell: Cell, category: str, dataset, split, spec, cache_dir: str) -> None:
+    """A predictions column's cell: every test mesh of the split's folds scored from its labelling on disk."""
+    from meshseg.data.splits import folds_for
+    from meshseg.report.predictions import score
+
+    cell.category = _match_category(dataset, category)
+    if cell.category is None:
+        cell.problem = f"dataset {dataset.name} has no category {category!r}"
+        return
+    folds = folds_for(dataset, cell.category, split)
+    cell.folds = len(folds)
+    scored = score(spec, dataset, cell.category, [m for f in folds for m in f.test], cache_dir)
+    cell.meshes, cell.accs = tuple(m for m, _ in scored), np.array([a for _, a in scored])
 
 
 def collect(
@@ -204,12 +241,13 @@ def collect(
     level: float = 0.95,
     seed: int = 0,
     sets=None,
+    paired=None,
 ) -> Table:
     """Build the table of `manifest` from the runs in the store the composed config names.
 
     `overrides` are run overrides applied after the manifest's (e.g. budget=cpu, tracking.uri=...);
     `sets` keeps only the rows whose name or category is listed (their groups lose the average row);
-    `metric` is a per-mesh column (FoldRecord.MESH_METRICS)."""
+    `metric` is a per-mesh column (FoldRecord.MESH_METRICS); `paired` two column keys to compare mesh by mesh."""
     from hydra import compose
     from hydra.errors import HydraException
 
@@ -260,6 +298,8 @@ def collect(
                     cell.budget, cell.overrides = cfg.budget.name, tuple(over)
                     if isinstance(dataset, str):
                         cell.problem = dataset
+                    elif column.predictions is not None:
+                        _fill_predictions(cell, s.category, dataset, cfg.split, column.predictions, cfg.paths.cache_dir)
                     else:
                         _fill(cell, s.category, dataset, cfg.split, resolved, runs)
             for s, cells in zip(chosen, grid):
@@ -299,7 +339,49 @@ def collect(
                 ),
             )
         )
-    return Table(manifest, rows, tuple(overrides), metric, level, budget_text)
+    table = Table(manifest, rows, tuple(overrides), metric, level, budget_text)
+    if paired is not None:
+        table.paired = compare(table, *paired, n_boot=n_boot, seed=seed)
+    return table
+
+
+def compare(table: Table, a: str, b: str, *, n_boot: int = 2000, seed: int = 0) -> Paired:
+    """Column `a` minus column `b` on the same test meshes (matched by mesh id): per set the mean difference
+    with a paired bootstrap interval (the meshes resampled, each keeping both its accuracies), per average
+    row the mean over its sets (each set resampled on its own)."""
+    keys = [c.key for c in table.columns]
+    for key in (a, b):
+        if key not in keys:
+            raise ConfigError(f"report.paired: {key!r} is no column of {table.manifest.name}; its columns are {keys}")
+    ia, ib = keys.index(a), keys.index(b)
+    out, diffs = [], {}
+    for row in table.rows:
+        ca, cb = row.cells[ia], row.cells[ib]
+        rng = cell_rng(seed, "paired", row.kind, row.group, row.label, a, b)
+        if row.kind == "set":
+            if ca.status != "ok" or cb.status != "ok":
+                out.append(PairedRow(row.label, row.kind, 0, why=f"{a}: {ca.status}, {b}: {cb.status}"))
+                continue
+            acc_b = dict(zip(cb.meshes, cb.accs))
+            d = np.array([x - acc_b[m] for m, x in zip(ca.meshes, ca.accs) if m in acc_b])
+            if not len(d):
+                out.append(PairedRow(row.label, row.kind, 0, why="no test mesh in common"))
+                continue
+            diffs[(row.group, row.label)] = d
+            out.append(
+                PairedRow(row.label, row.kind, len(d), float(d.mean()), bootstrap_ci([d], n_boot, table.level, rng))
+            )
+        else:
+            members = [r for r in table.rows if r.kind == "set" and (row.kind == "total" or r.group == row.group)]
+            ds = [diffs.get((r.group, r.label)) for r in members]
+            if any(d is None for d in ds) or not ds:
+                out.append(PairedRow(row.label, row.kind, 0, why="not every set compared"))
+                continue
+            value = float(np.mean([d.mean() for d in ds]))
+            out.append(
+                PairedRow(row.label, row.kind, sum(map(len, ds)), value, bootstrap_ci(ds, n_boot, table.level, rng))
+            )
+    return Paired(table.columns[ia], table.columns[ib], out)
 
 
 def _compose_error(e: Exception, manifest: Manifest, group, column: Column, overrides) -> Exception:

@@ -72,7 +72,35 @@ def markdown(table: Table) -> str:
     for row in table.rows:
         label = row.label if row.kind == "set" else f"**{row.label}**"
         out.append(f"| {label} | " + " | ".join(_md_cell(c) for c in row.cells) + " |")
+    if table.paired is not None:
+        p = table.paired
+        out += [
+            "",
+            f"**Paired comparison: {p.a.label} − {p.b.label}** (mean per-mesh difference in points over the test "
+            f"meshes both scored, [{100 * table.level:.0f} % paired bootstrap interval]; averages: mean over sets)",
+            "",
+            "| Set | Δ | meshes |",
+            "|---|---|---|",
+        ]
+        for r in p.rows:
+            label = r.label if r.kind == "set" else f"**{r.label}**"
+            value = r.why if r.value is None else f"{r.value:+.2f} [{r.ci[0]:+.2f}, {r.ci[1]:+.2f}]"
+            out.append(f"| {label} | {value} | {r.n_meshes} |")
     return "\n".join(out) + "\n"
+
+
+def paired_csv(table: Table) -> str:
+    """The paired comparison, one line per row."""
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    w.writerow(["row", "kind", "a", "b", "delta", "ci_low", "ci_high", "n_meshes", "why"])
+    p = table.paired
+    f = lambda v: "" if v is None else f"{v:.4f}"  # noqa: E731
+    for r in p.rows:
+        w.writerow(
+            [r.label, r.kind, p.a.key, p.b.key, f(r.value), f(r.ci and r.ci[0]), f(r.ci and r.ci[1]), r.n_meshes, r.why]
+        )
+    return buf.getvalue()
 
 
 def csv_text(table: Table) -> str:
@@ -272,8 +300,10 @@ def write_report(table: Table, out_dir: str | Path) -> list[Path]:
         "table.csv": csv_text(table),
         "comparison.png": png_bytes(comparison_figure(table)),
     }
+    if table.paired is not None:
+        contents["paired.csv"] = paired_csv(table)
     paths = []
-    for name in FILES:
+    for name in contents:
         path, tmp = out / name, out / f".{name}.tmp"
         data = contents[name]
         tmp.write_bytes(data if isinstance(data, bytes) else data.encode())
