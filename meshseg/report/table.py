@@ -39,7 +39,7 @@ class Cell:
     budget: str | None = None
     overrides: tuple[str, ...] = ()  # what `meshseg.run` needs to make this cell's runs
     category: str | None = None  # the dataset's own name for the set
-    run_ids: tuple[str, ...] = ()
+    config_hashes: tuple[str, ...] = ()  # its fold runs (the same in every store the runs are imported into)
     members: list[Cell] = field(default_factory=list)  # an average's set cells
     value: float | None = None
     ci: tuple[float, float] | None = None
@@ -211,7 +211,7 @@ def _fill(cell: Cell, category: str, dataset, split, resolved: dict, runs: _Runs
         else:
             found.append(run)
     cell.folds, cell.missing = len(folds), tuple(missing)
-    cell.run_ids = tuple(r.info.run_id for r in found)
+    cell.config_hashes = tuple(r.data.tags["config_hash"] for r in found)
     if not missing:
         scored = [pair for r in found for pair in runs.mesh_accuracies(r)]
         cell.meshes, cell.accs = tuple(m for m, _ in scored), np.array([a for _, a in scored])

@@ -126,7 +126,7 @@ def csv_text(table: Table) -> str:
             "budget",
             "why",
             "category",
-            "run_ids",
+            "config_hashes",
         ]
     )
     f = lambda v: "" if v is None else f"{v:.4f}"
@@ -151,7 +151,7 @@ def csv_text(table: Table) -> str:
                     c.budget or "",
                     c.why() if c.status in ("incomplete", "unavailable") else "",
                     c.category or "",
-                    " ".join(c.run_ids),
+                    " ".join(c.config_hashes),
                 ]
             )
     return buf.getvalue()
