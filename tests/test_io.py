@@ -77,6 +77,18 @@ def test_write_off_round_trips_exactly(tmp_path):
     assert not list(tmp_path.glob(".*tmp")), "atomic write leaves no temporary file"
 
 
+def test_a_label_with_no_faces_is_a_blank_line(tmp_path):
+    # Kalogerakis 2010's released .lab files write a label that no face has as its name and a blank line
+    p = write(tmp_path, "61.lab", "wing\n1 3\nrudder\n \nbody\n2 4\n")
+    labels, names = read_psb_labels(p, 4)
+    assert names == ("wing", "rudder", "body")
+    np.testing.assert_array_equal(labels, [0, 2, 0, 2])
+    # blank lines between blocks, or between a name and its indices, are not labels
+    labels, names = read_psb_labels(write(tmp_path, "2.lab", "\nwing\n\n1 3\n\nbody\n2 4\n\n"), 4)
+    assert names == ("wing", "body")
+    np.testing.assert_array_equal(labels, [0, 1, 0, 1])
+
+
 @pytest.mark.parametrize(
     "text, problem",
     [

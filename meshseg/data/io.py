@@ -221,6 +221,38 @@ def read_obj(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarra
     return (np.asarray(verts, np.float64), np.asarray(faces, np.int64), np.asarray(labels, np.int64), tuple(groups))
 
 
+_INTEGERS = re.compile(r"\s*-?\d+(\s+-?\d+)*\s*")
+
+
+def _label_blocks(path: Path) -> list[tuple[int, str, str]]:
+    """(line number of the indices, label name, indices text) of each block of an L-PSB labels file.
+
+    A block is a name line and the line after it. A blank line after a name is a label with no faces
+    (Kalogerakis 2010's released labellings have such blocks), unless face indices follow it on the
+    next non-blank line; other blank lines are ignored."""
+    try:
+        raw = path.read_text(errors="replace").splitlines()
+    except OSError as e:
+        raise MeshDataError(path, f"cannot read: {e.strerror}") from None
+    if not any(line.strip() for line in raw):
+        raise MeshDataError(path, "empty file")
+    blocks, i = [], 0
+    while i < len(raw):
+        if not raw[i].strip():
+            i += 1
+            continue
+        name, j = raw[i].strip(), i + 1
+        if j >= len(raw):
+            raise MeshDataError(path, f"truncated: label {name!r} on line {i + 1} has no line of face indices")
+        if not raw[j].strip():
+            k = next((k for k in range(j, len(raw)) if raw[k].strip()), None)
+            if k is not None and _INTEGERS.fullmatch(raw[k]):
+                j = k
+        blocks.append((j + 1, name, raw[j]))
+        i = j + 1
+    return blocks
+
+
 def read_psb_labels(path: str | os.PathLike, n_faces: int) -> tuple[np.ndarray, tuple[str, ...]]:
     """Read an L-PSB `<id>_labels.txt`: pairs of lines, a label name then its 1-based face indices.
 
@@ -228,21 +260,17 @@ def read_psb_labels(path: str | os.PathLike, n_faces: int) -> tuple[np.ndarray, 
     a name used by two blocks is one label).
     """
     path = Path(path)
-    lines = _read_lines(path)
-    if len(lines) % 2:
-        raise MeshDataError(path, f"truncated: {len(lines)} non-blank lines, expected name/indices pairs")
     labels = np.full(n_faces, -1, np.int64)
     names: dict[str, int] = {}
-    for k in range(0, len(lines), 2):
-        name = lines[k].strip()
+    for lineno, name, text in _label_blocks(path):
         try:
-            idx = np.fromstring(lines[k + 1], dtype=np.int64, sep=" ") - 1
+            idx = np.array(text.split(), dtype=np.int64) - 1
         except ValueError:
-            raise MeshDataError(path, f"line {k + 2}: face indices of label {name!r} are not integers") from None
+            raise MeshDataError(path, f"line {lineno}: face indices of label {name!r} are not integers") from None
         bad = (idx < 0) | (idx >= n_faces)
         if bad.any():
             raise MeshDataError(
-                path, f"line {k + 2}: label {name!r} lists face {idx[bad][0] + 1}, outside 1..{n_faces}"
+                path, f"line {lineno}: label {name!r} lists face {idx[bad][0] + 1}, outside 1..{n_faces}"
             )
         label = names.setdefault(name, len(names))
         uniq, counts = np.unique(idx, return_counts=True)
@@ -260,8 +288,7 @@ def read_psb_labels(path: str | os.PathLike, n_faces: int) -> tuple[np.ndarray, 
 
 def read_psb_label_names(path: str | os.PathLike) -> tuple[str, ...]:
     """Label names of an L-PSB labels file, without parsing the indices (for vocabularies)."""
-    lines = _read_lines(Path(path))
-    return tuple(dict.fromkeys(line.strip() for line in lines[0::2]))
+    return tuple(dict.fromkeys(name for _, name, _ in _label_blocks(Path(path))))
 
 
 def read_seg(path: str | os.PathLike, n_faces: int | None = None) -> np.ndarray:
