@@ -22,6 +22,7 @@ def import_results(manifest: Manifest, cfg: DictConfig) -> None:
     uses, imported into the runs' store (idempotent: records already there are skipped), so that a fresh
     clone reports from `results/` with no training."""
     from hydra import compose
+    from hydra.errors import HydraException
 
     from meshseg.results import import_records
     from meshseg.tracking import Tracker
@@ -32,8 +33,11 @@ def import_results(manifest: Manifest, cfg: DictConfig) -> None:
     overrides = [*manifest.overrides, *run_overrides(cfg)]
     given = [*overrides, *(o for g in manifest.groups for o in g.overrides)]
     given += [o for c in manifest.columns for o in c.overrides or ()]
-    with hydra_scope():
-        run_cfg = compose("run", overrides=overrides)
+    try:
+        with hydra_scope():
+            run_cfg = compose("run", overrides=overrides)
+    except HydraException:
+        return  # the table's own composition names the override at fault
     datasets = {o.split("=", 1)[1] for o in given if o.startswith("dataset=")}
     datasets = datasets or {run_cfg.dataset._target_.rsplit(".", 1)[1].lower()}  # PSB -> psb
     t = run_cfg.tracking
