@@ -25,6 +25,8 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from omegaconf import OmegaConf
+
 from meshseg.errors import ConfigError, MeshsegError
 from meshseg.tracking import FoldRecord, Tracker, flatten, fold_identity
 
@@ -170,8 +172,6 @@ def import_records(tracker: Tracker, root: Path) -> ImportReport:
         metrics = [Metric(k, float(v), t, 0) for k, v in record["metrics"].items()]
         for i in range(0, max(len(params), len(metrics)), 100):
             tracker.client.log_batch(run_id, metrics=metrics[i : i + 100], params=params[i : i + 100])
-        from omegaconf import OmegaConf
-
         tracker.log_fold(run_id, OmegaConf.to_yaml(OmegaConf.create(record["config"])), record["per_mesh"], None)
         tracker.client.set_terminated(run_id, "FINISHED", end_time=record["end_time"])
         have.add(chash)
