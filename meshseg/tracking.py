@@ -16,6 +16,7 @@ import hashlib
 import io
 import json
 import logging
+import random
 import subprocess
 import tempfile
 import time
@@ -275,6 +276,11 @@ def _owner() -> str:
     return f"{socket.gethostname()}:{os.getpid()}"
 
 
+def _holds(run) -> bool:
+    """Whether a run keeps its config from others: it is FINISHED, or RUNNING under a live lease."""
+    return run.info.status == "FINISHED" or (run.info.status == "RUNNING" and _lease_alive(run))
+
+
 def _lease_alive(run) -> bool:
     """Whether a RUNNING run's process is still at work: its heartbeat is recent and, when it runs on
     this host, its process exists (so a run killed outright here is taken over at once)."""
@@ -373,43 +379,53 @@ class Tracker:
         return runs[0] if runs else None
 
     def claim(
-        self, name: str, tags: dict, heartbeat_s: float = 30.0, lease_timeout_s: float = 120.0
+        self,
+        name: str,
+        tags: dict,
+        heartbeat_s: float = 30.0,
+        lease_timeout_s: float = 120.0,
+        attempts: int = 20,
     ) -> tuple[str | None, object | None]:
         """Create this config's run, RUNNING under a lease, unless the config is taken: returns (run id,
         None), or (None, the holder) when another run of the same `config_hash` is FINISHED or held by a
         live process.
 
         No lock is needed, so it works on any store: every claimant first creates its run, then looks
-        at the others; among live claimants the earliest (start time, run id) keeps the config and the
-        rest delete their own run. A lease is live while its owner's heartbeat tag is younger than
-        `lease_timeout_s` (and, on this host, while its process exists); a dead one is taken over and
-        its run marked KILLED."""
+        at the others, and keeps the config only if it sees no other live run of it. Of two claimants
+        the later to be stored sees the earlier, so two can never both keep it (start times cannot
+        order them: a client stamps its start time before its run is stored). Claimants that saw each
+        other all step back; if a moment later no live run is left, they try again after a random
+        pause. A lease is live while its owner's heartbeat tag is younger than `lease_timeout_s` (and,
+        on this host, while its process exists); a dead one is taken over and its run marked KILLED."""
         chash = tags["config_hash"]
-        lease = {
-            LEASE_OWNER: _owner(),
-            LEASE_HEARTBEAT: f"{time.time():.0f}",
-            LEASE_TIMEOUT: f"{lease_timeout_s:g}",
-            LEASE_INTERVAL: f"{heartbeat_s:g}",
-        }
-        mine = self._create(name, {**tags, **lease})
-        key = (mine.info.start_time, mine.info.run_id)
-        others = [r for r in self.runs(f"tags.config_hash = '{chash}'") if r.info.run_id != mine.info.run_id]
-        holder = next((r for r in others if r.info.status == "FINISHED"), None)
-        if holder is None:
-            live = [r for r in others if r.info.status == "RUNNING" and _lease_alive(r)]
-            holder = min(
-                (r for r in live if (r.info.start_time, r.info.run_id) < key),
-                key=lambda r: (r.info.start_time, r.info.run_id),
-                default=None,
-            )
-        if holder is not None:
-            self.client.delete_run(mine.info.run_id)
-            return None, holder
-        for stale in others:
-            if stale.info.status == "RUNNING" and not _lease_alive(stale):  # its process died mid-run
-                self.client.set_tag(stale.info.run_id, "superseded_by", mine.info.run_id)
-                self.client.set_terminated(stale.info.run_id, "KILLED")
-        return mine.info.run_id, None
+        holder = None
+        for attempt in range(attempts):
+            lease = {
+                LEASE_OWNER: _owner(),
+                LEASE_HEARTBEAT: f"{time.time():.0f}",
+                LEASE_TIMEOUT: f"{lease_timeout_s:g}",
+                LEASE_INTERVAL: f"{heartbeat_s:g}",
+            }
+            mine = self._create(name, {**tags, **lease}).info.run_id
+            others = [r for r in self._config_runs(chash) if r.info.run_id != mine]
+            holders = [r for r in others if _holds(r)]
+            if not holders:
+                for stale in others:
+                    if stale.info.status == "RUNNING":  # its process died mid-run
+                        self.client.set_tag(stale.info.run_id, "superseded_by", mine)
+                        self.client.set_terminated(stale.info.run_id, "KILLED")
+                return mine, None
+            self.client.delete_run(mine)
+            time.sleep(random.uniform(0.05, 0.25) * min(attempt + 1, 4))
+            # a holder that is still there is not a fellow claimant stepping back: it keeps the config
+            holders = [r for r in self._config_runs(chash) if _holds(r)]
+            if holders:
+                return None, min(holders, key=lambda r: (r.info.status != "FINISHED", r.info.start_time))
+            holder = None
+        return None, holder
+
+    def _config_runs(self, chash: str) -> list:
+        return self.runs(f"tags.config_hash = '{chash}'")
 
     def _create(self, name: str, tags: dict):
         from mlflow.utils.mlflow_tags import MLFLOW_RUN_NAME

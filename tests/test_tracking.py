@@ -86,22 +86,35 @@ def test_finished_config_is_never_claimed_and_the_run_beats(tmp_path):
     assert again is None and holder.info.status == "FINISHED"
 
 
+def test_a_claim_stored_later_never_wins_by_an_earlier_start_time(tmp_path, monkeypatch):
+    """A client stamps its start time before its run is stored, so a claimant stored after another had
+    looked can carry the earlier time; it must still step back (it once won, leaving two holders)."""
+    t = _tracker(tmp_path)
+    tags = {"config_hash": "abc"}
+    first, _ = t.claim("fold 0", tags)
+    create = t.client.create_run
+    monkeypatch.setattr(t.client, "create_run", lambda *a, **k: create(*a, start_time=1, **k))
+    second, holder = t.claim("fold 0", tags)
+    assert second is None and holder.info.run_id == first
+    assert [r.info.run_id for r in t.runs()] == [first]  # the loser's run is gone
+
+
 def test_claims_racing_from_threads_leave_one_winner(tmp_path):
     t = _tracker(tmp_path)
     got = []
-    barrier = threading.Barrier(4)
+    barrier = threading.Barrier(6)
 
     def claim():
         barrier.wait()
         got.append(Tracker(t.uri, "meshseg").claim("fold 0", {"config_hash": "race"})[0])
 
-    threads = [threading.Thread(target=claim) for _ in range(4)]
+    threads = [threading.Thread(target=claim) for _ in range(6)]
     for th in threads:
         th.start()
     for th in threads:
         th.join()
     winners = [g for g in got if g is not None]
-    assert len(got) == 4 and len(winners) == 1
+    assert len(got) == 6 and len(winners) == 1
     assert [r.info.run_id for r in t.runs("attributes.status = 'RUNNING'")] == winners
 
 
