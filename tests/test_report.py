@@ -23,7 +23,7 @@ from meshseg.report import ManifestError, collect, load_manifest, report
 from meshseg.report.app import main as report_main
 from meshseg.report.config import compose_config, run_overrides, split_argv
 from meshseg.report.manifest import Column
-from meshseg.report.table import Cell, Row, Table, _averages, bootstrap_ci, cell_rng
+from meshseg.report.table import Cell, Row, Table, _averages, bootstrap_ci, cell_rng, refinement_gain
 from meshseg.report.write import FILES
 from meshseg.reproduce import MissingCell, missing_cells
 from meshseg.reproduce import main as reproduce_main
@@ -92,6 +92,30 @@ def test_average_row_is_the_mean_of_set_values_and_needs_every_set():
     (avg2,) = _averages(manifest, [[a], [b2]], (80.0,), 200, 0.95, 0, ("average", "g", "Average"))
     assert avg2.status == "incomplete" and avg2.value is None and avg2.why() == "1 of 2 sets not complete"
     assert Cell(Column("p", "P", None), 93.0).status == "published"
+
+
+def test_the_refinement_block_is_refined_minus_raw_mesh_by_mesh():
+    """Two sets: the cut adds 2 and 0 points on set s1's meshes, -1 on s2's only mesh; the average row is
+    the mean over sets ((1 + -1) / 2 = 0), and the markdown shows raw -> refined for each."""
+    from meshseg.report.write import markdown, refinement_csv
+
+    s1 = Cell(COL, None, accs=np.array([90.0, 80.0]), gains=np.array([2.0, 0.0]), folds=1, value=85.0, ci=(80.0, 90.0))
+    s2 = Cell(COL, None, accs=np.array([70.0]), gains=np.array([-1.0]), folds=1, value=70.0, ci=(70.0, 70.0))
+    manifest = type("M", (), {"columns": (COL,), "title": "t", "source": "", "note": "", "name": "m"})()
+    (avg,) = _averages(manifest, [[s1], [s2]], (None,), 200, 0.95, 0, ("average", "g", "Average"))
+    rows = [Row("s1", "set", "g", [s1]), Row("s2", "set", "g", [s2]), Row("Average", "average", "g", [avg])]
+    table = Table(manifest, rows, (), "acc", 0.95)
+    gains = refinement_gain(table, "a", n_boot=400)
+    assert [g.value for g in gains] == pytest.approx([1.0, -1.0, 0.0])
+    assert gains[0].ci == pytest.approx((0.0, 2.0)) and gains[1].ci == pytest.approx((-1.0, -1.0))
+    assert [g.n_meshes for g in gains] == [2, 1, 3]
+    table.refinement = [(COL, gains)]
+    md = markdown(table)
+    assert "| s1 | 84.00 → 85.00 (+1.00 [+0.00, +2.00]) |" in md and "| s2 | 71.00 → 70.00 (-1.00" in md
+    assert "| **Average** | 77.50 → 77.50 (+0.00" in md and "Sets the refinement raised: A 1 of 2." in md
+    assert refinement_csv(table).splitlines()[1].startswith("s1,set,a,84.0000,85.0000,1.0000,0.0000,2.0000,2,")
+    s2.gains = None  # a column without raw accuracies (scored from disk) has no refinement row
+    assert refinement_gain(table, "a")[1].why == "no raw accuracies" and refinement_gain(table, "a")[2].value is None
 
 
 def test_a_cells_generator_is_its_identitys():
@@ -284,22 +308,21 @@ def test_a_damaged_run_is_a_user_error_naming_the_run(smoke_store, tmp_path, cac
     )
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1
-    assert re.fullmatch(r"error: run \w+ \(.+\): cannot read acc from per_mesh.csv: OSError: per_mesh.csv gone", err), (
-        err
-    )
+    expected = r"error: run \w+ \(.+\): cannot read acc/acc_raw from per_mesh.csv: OSError: per_mesh.csv gone"
+    assert re.fullmatch(expected, err), err
 
 
 # --- on the smoke store ---------------------------------------------------------------------------
 
 
-def mesh_mean(store: Path, tags: dict) -> float:
-    """A cell computed by hand: the runs with these tags, their per_mesh.csv rows, mean of `acc` in %."""
+def mesh_mean(store: Path, tags: dict, metric: str = "acc") -> float:
+    """A cell computed by hand: the runs with these tags, their per_mesh.csv rows, mean of `metric` in %."""
     client = MlflowClient(f"sqlite:///{store}/mlflow.db")
     filt = " and ".join(f"tags.{k} = '{v}'" for k, v in tags.items()) + " and attributes.status = 'FINISHED'"
     accs = []
     for run in runs_of(store, filter_string=filt):
         path = client.download_artifacts(run.info.run_id, "per_mesh.csv")
-        accs += [100 * float(r["acc"]) for r in read_csv(Path(path))]
+        accs += [100 * float(r[metric]) for r in read_csv(Path(path))]
     assert len(accs) == 5, tags  # every mesh of the set tested exactly once over the 2 folds
     return float(np.mean(accs))
 
@@ -321,6 +344,7 @@ def test_report_writes_every_format_from_the_runs_and_logs_itself(smoke_store, t
         "rf": {"model": "rf"},
     }
     md = (out / "table.md").read_text()
+    refinement = read_csv(out / "refinement.csv")
     for key, tags in columns.items():
         values = []
         for name, category in (("Table", "table"), ("Cup", "cup"), ("Figure", "figure")):
@@ -331,6 +355,12 @@ def test_report_writes_every_format_from_the_runs_and_logs_itself(smoke_store, t
             assert float(c["ci_low"]) <= value <= float(c["ci_high"])
             assert f"{value:.2f} [" in md
             values.append(value)
+            # the refinement block: raw is the runs' own acc_raw, refined the cell's value
+            g = cell(refinement, name, key)
+            raw = mesh_mean(smoke_store, {**tags, "category": category}, "acc_raw")
+            assert float(g["raw"]) == pytest.approx(raw, abs=1e-3) and float(g["refined"]) == pytest.approx(value)
+            assert float(g["gain"]) == pytest.approx(value - raw, abs=1e-3) and g["n_meshes"] == "5"
+            assert float(g["ci_low"]) <= float(g["gain"]) <= float(g["ci_high"])
         avg = cell(rows, "Average", key)
         assert avg["kind"] == "average" and float(avg["reproduced"]) == pytest.approx(np.mean(values), abs=1e-3)
     tex, html = (out / "table.tex").read_text(), (out / "table.html").read_text()
@@ -343,7 +373,8 @@ def test_report_writes_every_format_from_the_runs_and_logs_itself(smoke_store, t
     (logged,) = runs_of(smoke_store, "meshseg-reports", "tags.report = 'synthetic'")
     assert logged.info.status == "FINISHED" and logged.info.run_id in r.stdout
     client = MlflowClient(f"sqlite:///{smoke_store}/mlflow.db")
-    assert {a.path for a in client.list_artifacts(logged.info.run_id)} == set(FILES)
+    assert {a.path for a in client.list_artifacts(logged.info.run_id)} == {*FILES, "refinement.csv"}
+    assert "**Refinement: raw → refined**" in md and "Sets the refinement raised: 1D CNN 3B " in md
     average_3b = float(cell(rows, "Average", "3B")["reproduced"])
     assert logged.data.metrics["Average.3B"] == pytest.approx(average_3b, abs=1e-3)
     assert logged.data.metrics["cells_ok"] == 12

@@ -6,6 +6,9 @@ only runs made with exactly the cell's configuration (budget included) count. A 
 not all FINISHED is incomplete and has no value. An average row is the mean of its sets' values
 (the paper's way: every set weighs the same), defined only when all of them are complete.
 
+Every run column also gets the refinement's own effect: per set, refined minus raw (the network's argmax)
+accuracy on each test mesh, with a paired bootstrap interval, so a reader sees whether the graph cut helps.
+
 Each cell's bootstrap is seeded by the report seed and the cell's own identity (row kind, group, row label,
 column key), so a cell's interval is the same whichever other rows or columns the table holds.
 """
@@ -32,6 +35,7 @@ class Cell:
     column: Column
     published: float | None
     accs: np.ndarray | None = None  # per test mesh, %, over all folds (a complete set cell)
+    gains: np.ndarray | None = None  # per test mesh, refined - raw accuracy in points (run columns only)
     meshes: tuple[str, ...] = ()  # the test mesh of each of `accs`
     folds: int = 0  # folds the split has
     missing: tuple[int, ...] = ()  # folds without a FINISHED run
@@ -108,6 +112,7 @@ class Table:
     level: float
     budget_text: dict[str, str] = field(default_factory=dict)  # budget name -> what it trains on
     paired: Paired | None = None
+    refinement: list[tuple[Column, list[PairedRow]]] = field(default_factory=list)  # refined - raw per run column
 
     @property
     def budgets(self) -> list[str]:
@@ -149,13 +154,13 @@ def _match_category(dataset, name: str) -> str | None:
 class _Runs:
     """FINISHED runs of one store and experiment by config hash (the newest wins), and their per-mesh tables."""
 
-    def __init__(self, uri: str, experiment: str, metric: str):
+    def __init__(self, uri: str, experiment: str):
         from mlflow import MlflowClient
 
         from meshseg.tracking import store_uri
 
         os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # one bar per run otherwise
-        self.client, self.metric = MlflowClient(tracking_uri=store_uri(uri)), metric
+        self.client = MlflowClient(tracking_uri=store_uri(uri))
         exp = self.client.get_experiment_by_name(experiment)
         self.by_hash: dict[str, object] = {}
         if exp is None:
@@ -173,21 +178,25 @@ class _Runs:
             if not token:
                 break
 
-    def mesh_accuracies(self, run) -> list[tuple[str, float]]:
-        """(mesh id, accuracy in %) of each test mesh of the run, from its per-mesh table (FoldRecord.PER_MESH)."""
+    def mesh_accuracies(self, run) -> list[tuple[str, dict[str, float]]]:
+        """(mesh id, {metric: accuracy in %} for every FoldRecord.MESH_METRICS) of each test mesh of the run,
+        from its per-mesh table (FoldRecord.PER_MESH)."""
         try:
             with tempfile.TemporaryDirectory() as tmp:
                 path = self.client.download_artifacts(run.info.run_id, FoldRecord.PER_MESH, tmp)
                 with open(path, newline="") as f:
-                    return [(row["mesh"], 100.0 * float(row[self.metric])) for row in csv.DictReader(f)]
+                    return [
+                        (row["mesh"], {m: 100.0 * float(row[m]) for m in FoldRecord.MESH_METRICS})
+                        for row in csv.DictReader(f)
+                    ]
         except Exception as e:  # a FINISHED run without a readable table is damage in the store, not a missing fold
             raise TrackingError(
-                f"run {run.info.run_id} ({run.info.run_name}): cannot read {self.metric} from "
+                f"run {run.info.run_id} ({run.info.run_name}): cannot read {'/'.join(FoldRecord.MESH_METRICS)} from "
                 f"{FoldRecord.PER_MESH}: {type(e).__name__}: {e}"
             ) from None
 
 
-def _fill(cell: Cell, category: str, dataset, split, resolved: dict, runs: _Runs) -> None:
+def _fill(cell: Cell, category: str, dataset, split, resolved: dict, runs: _Runs, metric: str) -> None:
     """Find a cell's category and folds, the FINISHED run of each fold by config hash, and, when
     none is missing, the per-mesh accuracies; or say why the cell cannot have runs."""
     from meshseg.data.splits import folds_for
@@ -214,7 +223,8 @@ def _fill(cell: Cell, category: str, dataset, split, resolved: dict, runs: _Runs
     cell.config_hashes = tuple(r.data.tags["config_hash"] for r in found)
     if not missing:
         scored = [pair for r in found for pair in runs.mesh_accuracies(r)]
-        cell.meshes, cell.accs = tuple(m for m, _ in scored), np.array([a for _, a in scored])
+        cell.meshes, cell.accs = tuple(m for m, _ in scored), np.array([a[metric] for _, a in scored])
+        cell.gains = np.array([a["acc"] - a["acc_raw"] for _, a in scored])
 
 
 def _fill_predictions(cell: Cell, category: str, dataset, split, spec, cache_dir: str) -> None:
@@ -284,7 +294,7 @@ def collect(
                 budget_text[b.name] = f"{b.faces_per_mesh or 'every'} training faces per mesh, {b.epochs} epochs"
                 key = (cfg.tracking.uri, cfg.tracking.experiment)
                 if key not in stores:
-                    stores[key] = _Runs(*key, metric)
+                    stores[key] = _Runs(*key)
                 runs = stores[key]
                 dkey = OmegaConf.to_yaml(cfg.dataset)
                 if dkey not in datasets:
@@ -301,7 +311,7 @@ def collect(
                     elif column.predictions is not None:
                         _fill_predictions(cell, s.category, dataset, cfg.split, column.predictions, cfg.paths.cache_dir)
                     else:
-                        _fill(cell, s.category, dataset, cfg.split, resolved, runs)
+                        _fill(cell, s.category, dataset, cfg.split, resolved, runs, metric)
             for s, cells in zip(chosen, grid):
                 for cell in cells:
                     if cell.status == "ok":
@@ -342,6 +352,11 @@ def collect(
     table = Table(manifest, rows, tuple(overrides), metric, level, budget_text)
     if paired is not None:
         table.paired = compare(table, *paired, n_boot=n_boot, seed=seed)
+    table.refinement = [
+        (c, refinement_gain(table, c.key, n_boot=n_boot, seed=seed))
+        for c in table.columns
+        if c.overrides is not None and c.predictions is None
+    ]
     return table
 
 
@@ -354,18 +369,43 @@ def compare(table: Table, a: str, b: str, *, n_boot: int = 2000, seed: int = 0) 
         if key not in keys:
             raise ConfigError(f"report.paired: {key!r} is no column of {table.manifest.name}; its columns are {keys}")
     ia, ib = keys.index(a), keys.index(b)
+
+    def differences(row: Row) -> np.ndarray | str:
+        ca, cb = row.cells[ia], row.cells[ib]
+        if ca.status != "ok" or cb.status != "ok":
+            return f"{a}: {ca.status}, {b}: {cb.status}"
+        acc_b = dict(zip(cb.meshes, cb.accs))
+        d = np.array([x - acc_b[m] for m, x in zip(ca.meshes, ca.accs) if m in acc_b])
+        return d if len(d) else "no test mesh in common"
+
+    rows = _paired_rows(table, differences, ("paired", a, b), n_boot, seed)
+    return Paired(table.columns[ia], table.columns[ib], rows)
+
+
+def refinement_gain(table: Table, key: str, *, n_boot: int = 2000, seed: int = 0) -> list[PairedRow]:
+    """What the refinement adds in run column `key`: refined minus raw accuracy per test mesh, per set its
+    mean with a paired bootstrap interval, per average row the mean over its sets."""
+    j = [c.key for c in table.columns].index(key)
+
+    def differences(row: Row) -> np.ndarray | str:
+        cell = row.cells[j]
+        if cell.status != "ok":
+            return cell.status
+        return "no raw accuracies" if cell.gains is None else cell.gains
+
+    return _paired_rows(table, differences, ("refinement", key), n_boot, seed)
+
+
+def _paired_rows(table: Table, differences, ident: tuple[str, ...], n_boot: int, seed: int) -> list[PairedRow]:
+    """One PairedRow per table row from `differences(set row)` (per-mesh differences, or why there are none);
+    an average row is the mean over its sets, defined when every one of them has differences."""
     out, diffs = [], {}
     for row in table.rows:
-        ca, cb = row.cells[ia], row.cells[ib]
-        rng = cell_rng(seed, "paired", row.kind, row.group, row.label, a, b)
+        rng = cell_rng(seed, *ident[:1], row.kind, row.group, row.label, *ident[1:])
         if row.kind == "set":
-            if ca.status != "ok" or cb.status != "ok":
-                out.append(PairedRow(row.label, row.kind, 0, why=f"{a}: {ca.status}, {b}: {cb.status}"))
-                continue
-            acc_b = dict(zip(cb.meshes, cb.accs))
-            d = np.array([x - acc_b[m] for m, x in zip(ca.meshes, ca.accs) if m in acc_b])
-            if not len(d):
-                out.append(PairedRow(row.label, row.kind, 0, why="no test mesh in common"))
+            d = differences(row)
+            if isinstance(d, str):
+                out.append(PairedRow(row.label, row.kind, 0, why=d))
                 continue
             diffs[(row.group, row.label)] = d
             out.append(
@@ -381,7 +421,7 @@ def compare(table: Table, a: str, b: str, *, n_boot: int = 2000, seed: int = 0) 
             out.append(
                 PairedRow(row.label, row.kind, sum(map(len, ds)), value, bootstrap_ci(ds, n_boot, table.level, rng))
             )
-    return Paired(table.columns[ia], table.columns[ib], out)
+    return out
 
 
 def _compose_error(e: Exception, manifest: Manifest, group, column: Column, overrides) -> Exception:
