@@ -84,6 +84,7 @@ def write_record(path: Path, record: dict) -> bool:
 
 def export(tracker: Tracker, out: Path) -> tuple[int, int]:
     """Every FINISHED fold run of the tracker's experiment into `out`: (records written, unchanged)."""
+    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # two bars per run otherwise
     written = unchanged = 0
     for run in tracker.runs("attributes.status = 'FINISHED'"):
         if "config_hash" not in run.data.tags:

@@ -12,7 +12,10 @@ folds that the command line does not fix.
 from __future__ import annotations
 
 import logging
+import signal
 import sys
+import threading
+from contextlib import contextmanager
 from pathlib import Path
 
 import hydra
@@ -188,7 +191,7 @@ def run(cfg: DictConfig) -> float:
         if run_id is None:
             return _skipped(name, chash, holder)
 
-    with tracker.run(name, tags, flatten(config), run_id) as run_id:
+    with terminate_interrupts(), tracker.run(name, tags, flatten(config), run_id) as run_id:
         # fit and predict
         source = FeatureSource(dataset, category, features, cfg.paths.cache_dir, cfg.branches, cfg.ring_adjacency)
         ctx = TrainContext.from_config(cfg.budget, cfg.trainer, cfg.seed, tracker.lightning_logger(run_id))
@@ -226,6 +229,25 @@ def run(cfg: DictConfig) -> float:
         run_id,
     )
     return float(metrics[FoldRecord.ACC])
+
+
+@contextmanager
+def terminate_interrupts():
+    """While a fold runs, SIGTERM (`scancel`, `kill`, a job's time limit) interrupts it as Ctrl-C does, so
+    its run ends KILLED instead of staying RUNNING: submitit's jobs ignore SIGTERM, and SLURM follows it
+    with SIGKILL. Signals reach the main thread only; elsewhere this does nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt(f"{signal.Signals(signum).name} received")
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def job_overrides() -> list[str] | None:

@@ -68,7 +68,8 @@ class FoldRecord:
     def tags(cfg, *, dataset, category: str, fold, features: str, split: str, config_hash: str, overrides=None) -> dict:
         """The run's tags: TAGS (what the report selects by), the seed and accelerator, and provenance: the
         fold's mesh ids and the Hydra overrides the run was launched with (so that `meshseg.results`
-        can check a shipped record against the code), the machine and the package versions."""
+        can check a shipped record against the code), the machine, the package versions, and the SLURM job
+        when one runs it (so a stuck run can be found and `scancel`led)."""
         return {
             "dataset": dataset.name,
             "category": category,
@@ -88,6 +89,7 @@ class FoldRecord:
             **({"overrides": json.dumps(list(overrides))} if overrides is not None else {}),
             "machine": machine(cfg.trainer.accelerator),
             "versions": versions(),
+            **({"slurm_job": _slurm_job()} if _slurm_job() else {}),
         }
 
     @staticmethod
@@ -135,6 +137,16 @@ def fold_identity(cfg, category: str, fold, data_hash: str) -> tuple[dict, str]:
     config.update(category=category, fold=fold.index)
     extra = {"data_hash": data_hash, "train": list(fold.train), "test": list(fold.test)}
     return config, config_hash(config, config["tracking"]["hash_exclude"], extra)
+
+
+def _slurm_job() -> str | None:
+    """The SLURM job running this process (array jobs as <array job>_<task>), or None outside SLURM."""
+    import os
+
+    env = os.environ
+    if env.get("SLURM_ARRAY_JOB_ID") and env.get("SLURM_ARRAY_TASK_ID"):
+        return f"{env['SLURM_ARRAY_JOB_ID']}_{env['SLURM_ARRAY_TASK_ID']}"
+    return env.get("SLURM_JOB_ID")
 
 
 def machine(accelerator: str = "cpu") -> str:

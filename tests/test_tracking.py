@@ -118,6 +118,26 @@ def test_claims_racing_from_threads_leave_one_winner(tmp_path):
     assert [r.info.run_id for r in t.runs("attributes.status = 'RUNNING'")] == winners
 
 
+def test_sigterm_mid_run_ends_the_run_killed(store):
+    """What `scancel` does to a job: SIGTERM while the fold trains. The run must end KILLED (never stay
+    RUNNING or become FINISHED without metrics); a KILLED run does not hold its config, so the next sweep
+    trains it again (make cluster-test does that through SLURM)."""
+    from conftest import REPO
+
+    args = [sys.executable, "-m", "meshseg.run", *SMALL, "category=cup", "fold=0", "trainer.threads=1"]
+    proc = subprocess.Popen(args, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    deadline = time.time() + 300
+    while not (store / "mlflow.db").exists() or not runs(store, "RUNNING"):
+        assert proc.poll() is None and time.time() < deadline, "the run never started"
+        time.sleep(0.2)
+    proc.terminate()
+    out = proc.communicate(timeout=120)[0]
+    assert proc.returncode != 0, out[-2000:]
+    (killed,) = runs(store)
+    assert killed.info.status == "KILLED" and "test_acc" not in killed.data.metrics, out[-2000:]
+    assert "SIGTERM received" in out
+
+
 def test_two_sweeps_of_one_study_at_once_train_each_fold_once(store):
     """Both sweeps start together; every fold is trained by one of them and skipped by the other."""
     args = [sys.executable, "-m", "meshseg.run", *SMALL, "category=cup", "trainer.threads=1", "-m"]

@@ -75,7 +75,16 @@ class MeshsegSweeper(BasicSweeper):
         while not self.is_done():
             batch = self.get_job_batch()
             self.validate_batch_is_legal(batch)
-            results = self.launcher.launch(batch, initial_job_idx=initial_job_idx)
+            try:
+                results = self.launcher.launch(batch, initial_job_idx=initial_job_idx)
+            except Exception as e:  # submitit: a job left the queue without a result (scancel, time limit)
+                if type(e).__name__ not in ("UncompletedJobError", "FailedJobError"):
+                    raise
+                sys.exit(
+                    f"error: {str(e).strip().splitlines()[0]}\nsweep: a cluster job ended without a result "
+                    f"(cancelled, or killed at its time limit); jobs still queued go on; the runs it began are "
+                    f"KILLED in the store; a rerun retries them"
+                )
             failed.extend(r for r in results if r.status != JobStatus.COMPLETED)
             initial_job_idx += len(batch)
             returns.append(results)

@@ -8,6 +8,7 @@ import warnings
 import numpy as np
 import pytorch_lightning as pl
 import torch
+from pytorch_lightning.plugins.environments import LightningEnvironment
 from torch import nn
 
 from meshseg.training.context import TrainContext
@@ -26,6 +27,9 @@ def make_trainer(ctx: TrainContext) -> pl.Trainer:
         enable_model_summary=False,
         num_sanity_val_steps=0,
         log_every_n_steps=1,
+        # one process per fold, also inside a SLURM job: Lightning must not take the job over (its SLURM
+        # environment installs requeue signal handlers and warns when `srun` merely exists)
+        plugins=[LightningEnvironment()],
     )
 
 
