@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 # Re-install only when the package's requirements change.
 STAMP  := $(VENV)/.installed
 
-.PHONY: install demo lint format test clean-venv
+.PHONY: install demo lint format test cluster-test clean-venv
 
 install: $(STAMP)
 
@@ -36,6 +36,11 @@ format: install
 
 test: lint
 	$(BIN)/python -m pytest
+
+# A one-node SLURM cluster and an MLflow server on PostgreSQL, started here as root (scripts/local_cluster.sh,
+# apt-installing what is missing), a smoke sweep through hydra/launcher=slurm, and everything stopped again.
+cluster-test: install
+	$(BIN)/python -m pytest -m cluster tests/test_cluster.py
 
 clean-venv:
 	rm -rf $(VENV)

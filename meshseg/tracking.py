@@ -263,17 +263,33 @@ def _file_lock(path: Path) -> Iterator[None]:
 
 
 def _retry(fn, what: str, attempts: int = 8):
-    """sqlite under several writer processes can report 'database is locked': back off and retry."""
+    """sqlite under several writer processes can report 'database is locked': back off and retry. A
+    tracking server that stays unreachable through MLflow's own HTTP retries is one TrackingError."""
     from mlflow.exceptions import MlflowException
 
     for i in range(attempts):
         try:
             return fn()
         except MlflowException as e:
+            if _unreachable(e):
+                raise TrackingError(
+                    f"{what}: the tracking server stopped answering ({_unreachable(e)}); a rerun redoes this fold"
+                ) from None
             if "locked" not in str(e) or i == attempts - 1:
                 raise
             log.warning("%s: store busy, retrying", what)
             time.sleep(0.2 * 2**i)
+
+
+def _unreachable(e: Exception) -> str | None:
+    """Why an MLflow HTTP call failed for want of a server (e.g. 'Connection refused'), or None."""
+    text = str(e)
+    if "failed with exception" not in text or "Max retries exceeded" not in text:
+        return None
+    for why in ("Connection refused", "timed out", "Connection reset", "Name or service not known"):
+        if why in text:
+            return why
+    return "no connection"
 
 
 #: lease tags of a claimed run (Tracker.claim): who runs it, when it last said so, and the timing
@@ -463,9 +479,17 @@ class Tracker:
             raise
         except BaseException as e:
             text = "".join(traceback.format_exception_only(type(e), e)).strip()
-            self.client.set_tag(run_id, "error", text[:5000])
-            self.client.log_text(run_id, traceback.format_exc(), "error.txt")
-            self._end(beat, run_id, "FAILED")
+            try:
+                self.client.set_tag(run_id, "error", text[:5000])
+                self.client.log_text(run_id, traceback.format_exc(), "error.txt")
+                self._end(beat, run_id, "FAILED")
+            except Exception as why:  # the store itself is gone: the run stays RUNNING until a rerun takes it over
+                beat and beat.stop()
+                log.warning("run %s could not be marked FAILED: %s", run_id, str(why).splitlines()[0][:300])
+            if _unreachable(e):  # e.g. an artifact upload that found no server: one line, not MLflow's page
+                raise TrackingError(
+                    f"run {run_id}: the tracking server stopped answering ({_unreachable(e)}); a rerun redoes this fold"
+                ) from None
             raise
         else:
             self._end(beat, run_id, "FINISHED")

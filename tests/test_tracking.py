@@ -213,3 +213,21 @@ def test_programming_errors_keep_their_traceback(store, tmp_path):
     assert "error: boom" not in r.stderr
     (failed,) = runs(store, "FAILED")
     assert "TypeError: boom from the metric" in failed.data.tags["error"]
+
+
+def test_a_server_that_stops_answering_is_one_tracking_error(monkeypatch):
+    """What a job sees when the tracking server goes away mid-sweep: MLflow's own HTTP retries, then one
+    TrackingError naming what was being logged (not MLflow's page-long exception)."""
+    from mlflow import MlflowClient
+
+    from meshseg.tracking import _retry
+
+    monkeypatch.setenv("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "0")
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    client = MlflowClient(f"http://127.0.0.1:{port}")
+    with pytest.raises(
+        TrackingError, match=r"^log metrics: the tracking server stopped answering \(Connection refused\)"
+    ):
+        _retry(lambda: client.get_experiment_by_name("meshseg"), "log metrics")
