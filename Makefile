@@ -35,7 +35,7 @@ format: install
 	$(BIN)/ruff format .
 
 test: lint
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest --durations=10
 
 # A one-node SLURM cluster and an MLflow server on PostgreSQL, started here as root (scripts/local_cluster.sh,
 # apt-installing what is missing), a smoke sweep through hydra/launcher=slurm, and everything stopped again.

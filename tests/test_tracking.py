@@ -124,10 +124,12 @@ def test_sigterm_mid_run_ends_the_run_killed(store):
     trains it again (make cluster-test does that through SLURM)."""
     from conftest import REPO
 
+    store.mkdir(parents=True, exist_ok=True)
+    Tracker(f"sqlite:///{store}/mlflow.db", "meshseg", str(store / "artifacts"))  # made first: polls never race it
     args = [sys.executable, "-m", "meshseg.run", *SMALL, "category=cup", "fold=0", "trainer.threads=1"]
     proc = subprocess.Popen(args, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     deadline = time.time() + 300
-    while not (store / "mlflow.db").exists() or not runs(store, "RUNNING"):
+    while not runs(store, "RUNNING"):
         assert proc.poll() is None and time.time() < deadline, "the run never started"
         time.sleep(0.2)
     proc.terminate()
