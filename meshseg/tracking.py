@@ -381,11 +381,10 @@ class Tracker:
         exp = _retry(lambda: self.client.get_experiment_by_name(name), "get experiment")
         if exp is not None:
             return exp.experiment_id
-        location = (
-            Path(artifact_dir).expanduser().absolute().as_uri()
-            if artifact_dir and self.uri.startswith("sqlite")
-            else None
-        )
+        location = None  # a server decides for itself
+        if self.uri.startswith("sqlite:///"):  # a sqlite store keeps its artifacts beside its database file
+            folder = Path(artifact_dir) if artifact_dir else Path(self.uri[len("sqlite:///") :]).parent / "artifacts"
+            location = folder.expanduser().absolute().as_uri()
         try:
             return self.client.create_experiment(name, artifact_location=location)
         except MlflowException:  # another worker created it first

@@ -233,3 +233,19 @@ def test_a_server_that_stops_answering_is_one_tracking_error(monkeypatch):
         TrackingError, match=r"^log metrics: the tracking server stopped answering \(Connection refused\)"
     ):
         _retry(lambda: client.get_experiment_by_name("meshseg"), "log metrics")
+
+
+def test_a_sqlite_store_keeps_its_artifacts_beside_its_database(tmp_path):
+    """tracking.uri=sqlite:///X/mlflow.db is all of folder X: runs' and reports' artifacts go to X/artifacts,
+    never to ./mlruns of the current folder (an explicit tracking.artifact_dir still wins)."""
+    from meshseg.tracking import Tracker
+
+    assert compose_run().tracking.artifact_dir is None
+    for experiment in ("meshseg", "meshseg-reports"):
+        t = Tracker(f"sqlite:///{tmp_path}/x/mlflow.db", experiment)
+        location = t.client.get_experiment(t.experiment_id).artifact_location
+        assert location == (tmp_path / "x/artifacts").as_uri()
+    elsewhere = Tracker(f"sqlite:///{tmp_path}/y/mlflow.db", "meshseg", str(tmp_path / "elsewhere"))
+    assert (
+        elsewhere.client.get_experiment(elsewhere.experiment_id).artifact_location == (tmp_path / "elsewhere").as_uri()
+    )
