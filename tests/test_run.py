@@ -162,6 +162,10 @@ def test_one_run_follows_the_tracking_contract_and_reruns_skip(store):
     assert r.returncode == 0, r.stderr[-3000:]
     (run,) = runs(store)
     assert run.info.status == "FINISHED"
+    # no progress bar: one line per epoch (budget=smoke trains 2), with what the module logged
+    out = r.stdout + r.stderr
+    epochs = re.findall(r"epoch (\d)/2: lr \S+, train_acc \S+, train_loss \S+; \S+ s, about \d+ s left", out)
+    assert epochs == ["1", "2"], out[-3000:]
     tags = run.data.tags
     assert set(CONTRACT_TAGS) <= set(tags)
     assert (

@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import logging
+import time
 import warnings
 
 import numpy as np
@@ -13,6 +15,24 @@ from torch import nn
 
 from meshseg.training.context import TrainContext
 from meshseg.training.data import FoldDataModule, TrainSet
+
+log = logging.getLogger("meshseg.training")
+
+
+class EpochLog(pl.Callback):
+    """One log line per epoch where no progress bar is shown: what the module logged (loss, accuracy,
+    learning rate), the epoch's seconds and the time left at the pace so far."""
+
+    def on_train_start(self, trainer, module):
+        self.start = self.last = time.perf_counter()
+
+    def on_train_epoch_end(self, trainer, module):
+        now = time.perf_counter()
+        took, self.last = now - self.last, now
+        done, total = trainer.current_epoch + 1, trainer.max_epochs
+        left = (now - self.start) / done * (total - done)
+        values = ", ".join(f"{k} {float(v):.4g}" for k, v in sorted(trainer.callback_metrics.items()) if v.numel() == 1)
+        log.info("epoch %d/%d: %s; %.1f s, about %.0f s left", done, total, values, took, left)
 
 
 def make_trainer(ctx: TrainContext) -> pl.Trainer:
@@ -30,6 +50,7 @@ def make_trainer(ctx: TrainContext) -> pl.Trainer:
         # one process per fold, also inside a SLURM job: Lightning must not take the job over (its SLURM
         # environment installs requeue signal handlers and warns when `srun` merely exists)
         plugins=[LightningEnvironment()],
+        callbacks=[] if ctx.progress_bar else [EpochLog()],
     )
 
 
@@ -40,6 +61,8 @@ def train_stage(module: pl.LightningModule, data: TrainSet, ctx: TrainContext) -
         # One in-memory tensor dataset: DataLoader worker processes would only add copies.
         warnings.filterwarnings("ignore", message=".*does not have many workers.*")
         warnings.filterwarnings("ignore", message=".*LeafSpec.*is deprecated")  # Lightning 2.6 on torch 2.13
+        # fit() asks whether SLURM launched it (for its own requeue checkpoints) even with LightningEnvironment
+        warnings.filterwarnings("ignore", message=".*The `srun` command is available on your system")
         trainer.fit(module, datamodule=FoldDataModule(data, ctx.batch_size, ctx.seed))
 
 
