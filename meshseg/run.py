@@ -157,7 +157,7 @@ def run(cfg: DictConfig) -> float:
     """One fold: skip if its config already has a FINISHED run (or a live one), else resolve -> fit and
     predict -> refine -> score -> record. Returns the fold's test accuracy (area-weighted, refined)."""
     from meshseg.metrics import mesh_scores
-    from meshseg.tracking import FoldRecord, Tracker, flatten, fold_identity
+    from meshseg.tracking import FoldRecord, Tracker, flatten, fold_identity, system_tags
     from meshseg.training.context import TrainContext
     from meshseg.training.data import FeatureSource
     from meshseg.training.fit import fit_predict
@@ -184,6 +184,8 @@ def run(cfg: DictConfig) -> float:
         config_hash=chash,
         overrides=job_overrides(),
     )
+    command = " ".join(["python -m meshseg.run", *(job_overrides() or [])])
+    tags.update(system_tags("meshseg.run", command, tags["git_sha"]), **sweep_tag())
     log.info("run: %s (config %s, %d train / %d test meshes)", name, chash, len(fold.train), len(fold.test))
     run_id = None
     if cfg.tracking.skip_finished:  # claim the config: a concurrent sweep may have taken it since the check
@@ -248,6 +250,16 @@ def terminate_interrupts():
         yield
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+def sweep_tag() -> dict[str, str]:
+    """{"sweep_id": the sweep's folder name} for a job of a `-m` sweep, so its runs can be found together."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    if not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.MULTIRUN:
+        return {}
+    return {"sweep_id": Path(HydraConfig.get().sweep.dir).name}
 
 
 def job_overrides() -> list[str] | None:

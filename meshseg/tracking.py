@@ -139,6 +139,25 @@ def fold_identity(cfg, category: str, fold, data_hash: str) -> tuple[dict, str]:
     return config, config_hash(config, config["tracking"]["hash_exclude"], extra)
 
 
+def system_tags(source: str, command: str, git: str) -> dict[str, str]:
+    """MLflow's own run fields, which its UI shows: source, user, git commit, and the command line as the
+    run's description (`mlflow.note.content`)."""
+    import getpass
+
+    try:
+        user = getpass.getuser()
+    except (KeyError, OSError):  # no name for this uid (some containers)
+        user = "unknown"
+    sha = git.removesuffix("+dirty")
+    return {
+        "mlflow.source.name": source,
+        "mlflow.source.type": "JOB" if _slurm_job() else "LOCAL",
+        "mlflow.user": user,
+        **({"mlflow.source.git.commit": sha} if sha != "unknown" else {}),
+        "mlflow.note.content": f"`{command}`",
+    }
+
+
 def _slurm_job() -> str | None:
     """The SLURM job running this process (array jobs as <array job>_<task>), or None outside SLURM."""
     import os

@@ -163,6 +163,12 @@ def test_one_run_follows_the_tracking_contract_and_reruns_skip(store):
     (run,) = runs(store)
     assert run.info.status == "FINISHED"
     # no progress bar: one line per epoch (budget=smoke trains 2), with what the module logged
+    # MLflow's own fields, which its UI shows: source, user, commit, the command line as the description
+    tags = run.data.tags
+    assert tags["mlflow.source.name"] == "meshseg.run" and tags["mlflow.source.type"] == "LOCAL"
+    assert tags["mlflow.note.content"] == "`python -m meshseg.run " + " ".join([*SMALL, "category=cup", "fold=1"]) + "`"
+    assert tags["mlflow.user"] and tags["mlflow.source.git.commit"] == tags["git_sha"].removesuffix("+dirty")
+    assert "sweep_id" not in tags  # a single run is no sweep
     out = r.stdout + r.stderr
     epochs = re.findall(r"epoch (\d)/2: lr \S+, train_acc \S+, train_loss \S+; \S+ s, about \d+ s left", out)
     assert epochs == ["1", "2"], out[-3000:]
@@ -294,6 +300,10 @@ def test_killed_sweep_resumes_doing_only_what_is_missing(store):
     finished = runs(store, "FINISHED")
     assert sorted(int(x.data.tags["fold"]) for x in finished) == [0, 1, 2, 3, 4]
     assert runs(store, "RUNNING") == []  # a run killed mid-way is marked KILLED once redone
+    # each sweep's runs carry its id: the first sweep's survivors one, the resumed folds another
+    first = {x.data.tags["sweep_id"] for x in finished if x.data.tags["fold"] in before}
+    resumed = {x.data.tags["sweep_id"] for x in finished if x.data.tags["fold"] not in before}
+    assert len(first) == len(resumed) == 1 and first != resumed
     rerun = meshseg_run(*SMALL, "category=table", "-m")
     assert (rerun.stdout + rerun.stderr).count("skip:") == 5 and len(runs(store, "FINISHED")) == 5
 
