@@ -145,6 +145,22 @@ def test_bad_values_under_m_get_one_line_before_any_work(store, override, messag
     assert not (store / "mlflow.db").exists() or runs(store) == []
 
 
+def test_console_scripts_and_hydra_tab_completion():
+    """`meshseg-run` is the same app as `python -m meshseg.run`, and Hydra's shell completion works through
+    it: `-sc install=bash` is a flag and its value, not a setting to refuse."""
+    bin_dir = Path(sys.executable).parent
+    for name in ("meshseg-run", "meshseg-report", "meshseg-reproduce", "meshseg-results", "meshseg-features"):
+        assert (bin_dir / name).is_file(), f"{name} not installed (pyproject [project.scripts]; make install)"
+    typo = subprocess.run([bin_dir / "meshseg-run", "modle=cnn1d"], capture_output=True, text=True, timeout=120)
+    assert typo.returncode == 1 and typo.stderr.startswith("error: unknown setting 'modle' (did you mean model?)")
+    sc = subprocess.run([bin_dir / "meshseg-run", "-sc", "install=bash"], capture_output=True, text=True, timeout=120)
+    assert sc.returncode == 0 and "hydra_bash_completion" in sc.stdout and "meshseg-run" in sc.stdout, sc.stderr
+    env = {**os.environ, "COMP_LINE": "meshseg-run model=", "COMP_POINT": "18"}  # what bash asks on <TAB>
+    query = [bin_dir / "meshseg-run", "-sc", "query=bash"]
+    options = subprocess.run(query, capture_output=True, text=True, timeout=120, env=env).stdout.split()
+    assert {"model=cnn1d", "model=cnn2d", "model=rf"} <= set(options), options
+
+
 def test_config_hash_ignores_paths_and_sees_knobs():
     cfg = {"paths": {"cache_dir": "a"}, "branches": 3, "model": {"hidden": 172}}
     h = config_hash(cfg, ["paths"], {"data_hash": "x"})
