@@ -444,7 +444,6 @@ class Tracker:
         pause. A lease is live while its owner's heartbeat tag is younger than `lease_timeout_s` (and,
         on this host, while its process exists); a dead one is taken over and its run marked KILLED."""
         chash = tags["config_hash"]
-        holder = None
         for attempt in range(attempts):
             lease = {
                 LEASE_OWNER: _owner(),
@@ -467,8 +466,7 @@ class Tracker:
             holders = [r for r in self._config_runs(chash) if _holds(r)]
             if holders:
                 return None, min(holders, key=lambda r: (r.info.status != "FINISHED", r.info.start_time))
-            holder = None
-        return None, holder
+        raise TrackingError(f"config {chash}: {attempts} claims in a row met other claimants; run it again")
 
     def _config_runs(self, chash: str) -> list:
         return self.runs(f"tags.config_hash = '{chash}'")
@@ -502,7 +500,8 @@ class Tracker:
                 self.client.log_text(run_id, traceback.format_exc(), "error.txt")
                 self._end(beat, run_id, "FAILED")
             except Exception as why:  # the store itself is gone: the run stays RUNNING until a rerun takes it over
-                beat and beat.stop()
+                if beat is not None:
+                    beat.stop()
                 log.warning("run %s could not be marked FAILED: %s", run_id, str(why).splitlines()[0][:300])
             if _unreachable(e):  # e.g. an artifact upload that found no server: one line, not MLflow's page
                 raise TrackingError(
