@@ -498,3 +498,14 @@ def test_the_report_prints_the_papers_numbers(stem, tmp_path, cache_dir, monkeyp
     assert all(
         f"/ {v:.2f}" in first or f"| {v:.2f}" in first or f"{v:.2f} |" in first for v in values[extra:] if v is not None
     )
+
+
+def test_headers_carry_no_latex():
+    """A manifest's `source` keeps the paper's `\\label{...}` (tests match it against the LaTeX); the
+    report's header shows the label's bare name."""
+    from meshseg.report.write import header_lines
+
+    manifest = load_manifest(REPO / "experiments/table4_fixed_splits.yaml")
+    lines = header_lines(Table(manifest, [], (), "acc", 0.95))
+    assert lines[1] == "Published: Table 4 (table:results-1fold)"
+    assert not any("\\" in line for line in lines)

@@ -7,12 +7,16 @@ from __future__ import annotations
 import csv
 import html
 import io
+import re
 from pathlib import Path
 
 import numpy as np
 
 from meshseg.report.config import METRIC_TEXT
 from meshseg.report.table import Cell, Table
+
+#: the paper's LaTeX label in a manifest's `source`, shown in headers as its bare name (no LaTeX there)
+_LABEL = re.compile(r"\\label\{([^}]*)\}")
 
 FILES = ("table.md", "table.tex", "table.html", "table.csv", "comparison.png")
 
@@ -42,7 +46,7 @@ def header_lines(table: Table) -> list[str]:
     budgets = "; ".join(f"{b} ({table.budget_text.get(b, '?')})" for b in table.budgets)
     lines = [
         m.title,
-        f"Published: {m.source}" if m.source else "",
+        "Published: " + _LABEL.sub(r"\1", m.source) if m.source else "",
         f"Budget: {budgets or '—'}; cell = mean accuracy (%) over all test meshes of all folds "
         f"({METRIC_TEXT[table.metric]}), [{100 * table.level:.0f} % bootstrap interval over test meshes]; "
         f"Δ = reproduced − published",
