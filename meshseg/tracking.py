@@ -290,25 +290,23 @@ def _retry(fn, what: str, attempts: int = 8):
         try:
             return fn()
         except MlflowException as e:
-            if _unreachable(e):
-                raise TrackingError(
-                    f"{what}: the tracking server stopped answering ({_unreachable(e)}); a rerun redoes this fold"
-                ) from None
+            if gone := _server_gone(what, e):
+                raise gone from None
             if "locked" not in str(e) or i == attempts - 1:
                 raise
             log.warning("%s: store busy, retrying", what)
             time.sleep(0.2 * 2**i)
 
 
-def _unreachable(e: Exception) -> str | None:
-    """Why an MLflow HTTP call failed for want of a server (e.g. 'Connection refused'), or None."""
+def _server_gone(what: str, e: Exception) -> TrackingError | None:
+    """The one-line error for an MLflow HTTP call that failed for want of a server (MLflow's own retries
+    spent), or None when `e` is something else."""
     text = str(e)
     if "failed with exception" not in text or "Max retries exceeded" not in text:
         return None
-    for why in ("Connection refused", "timed out", "Connection reset", "Name or service not known"):
-        if why in text:
-            return why
-    return "no connection"
+    reasons = ("Connection refused", "timed out", "Connection reset", "Name or service not known")
+    why = next((r for r in reasons if r in text), "no connection")
+    return TrackingError(f"{what}: the tracking server stopped answering ({why}); a rerun redoes this fold")
 
 
 #: lease tags of a claimed run (Tracker.claim): who runs it, when it last said so, and the timing
@@ -503,10 +501,8 @@ class Tracker:
                 if beat is not None:
                     beat.stop()
                 log.warning("run %s could not be marked FAILED: %s", run_id, str(why).splitlines()[0][:300])
-            if _unreachable(e):  # e.g. an artifact upload that found no server: one line, not MLflow's page
-                raise TrackingError(
-                    f"run {run_id}: the tracking server stopped answering ({_unreachable(e)}); a rerun redoes this fold"
-                ) from None
+            if gone := _server_gone(f"run {run_id}", e):  # e.g. an artifact upload: one line, not MLflow's page
+                raise gone from None
             raise
         else:
             self._end(beat, run_id, "FINISHED")
