@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 # Re-install only when the package's requirements change.
 STAMP  := $(VENV)/.installed
 
-.PHONY: install demo lint format test cluster-test clean-venv
+.PHONY: install demo ui lint format test cluster-test ui-test clean-venv
 
 install: $(STAMP)
 
@@ -18,12 +18,15 @@ $(STAMP): pyproject.toml | $(BIN)/python
 	$(BIN)/python -m pip install --quiet -e ".[dev]" "torch==2.13.0"
 	touch $(STAMP)
 
-# The user's command on the embedded synthetic data: every category x fold, one MLflow run each.
+# The worked example: every run of experiments/synthetic.yaml (1D CNN 3B and 1B, RF; 3 synthetic categories x
+# 5 folds) through meshseg.reproduce, which skips what the store has and ends by printing the table.
 demo: install
-	$(BIN)/python -m meshseg.run model=cnn1d branches=3 split=5fold -m
-	@echo "Runs are in the MLflow store mlruns/mlflow.db. Browse them with:"
-	@echo "  $(BIN)/mlflow ui --backend-store-uri sqlite:///mlruns/mlflow.db   # then open http://127.0.0.1:5000"
-	@echo "Their table (reports/synthetic/): $(BIN)/python -m meshseg.report experiments/synthetic.yaml"
+	$(BIN)/python -m meshseg.reproduce experiments/synthetic.yaml
+	@echo "Browse the runs: make ui"
+
+# The MLflow UI on the default store, at the runs table (the URL is printed first); Ctrl-C stops it.
+ui: install
+	$(BIN)/python -m meshseg.ui
 
 # Lint and format check (ruff, configured in pyproject.toml); `make format` applies both.
 lint: install
@@ -41,6 +44,13 @@ test: lint
 # apt-installing what is missing), a smoke sweep through hydra/launcher=slurm, and everything stopped again.
 cluster-test: install
 	$(BIN)/python -m pytest -m cluster tests/test_cluster.py
+
+# The MLflow UI driven in headless Chromium (Debian's chromium and chromium-driver, apt-installed as root when
+# missing): the runs table, a run's source, dataset, train/loss curve and a render.
+ui-test: install
+	command -v chromium >/dev/null && command -v chromedriver >/dev/null || \
+		(apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium chromium-driver >/dev/null)
+	$(BIN)/python -m pytest -m browser tests/test_mlflow_ui.py
 
 clean-venv:
 	rm -rf $(VENV)

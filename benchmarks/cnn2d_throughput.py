@@ -13,7 +13,7 @@ conf/model/cnn2d.yaml and conf/model/cnn1d.yaml. For each it measures
 
 Each figure is the median over --repeats rounds; the rounds alternate between the models so that
 background load hits them alike. Lightning's own per-step overhead (a few ms) is not included: in a
-real run (`train_samples_per_s` in MLflow) it dominates for a network this small.
+real run (`speed/train_samples_per_s` in MLflow) it dominates for a network this small.
 """
 
 from __future__ import annotations

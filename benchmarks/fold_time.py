@@ -8,7 +8,7 @@ bare network's rate measured in the same process.
 The feature cache should be warm (`python -m meshseg.features dataset=psb category=Glasses` first): the
 phase `features` then only checks it. The fold is run by `meshseg.run.run` on a temporary MLflow store
 (nothing is left behind), with the run's own threads and malloc tuning, and its phase timings are read
-back from the run's `time_<phase>_s` metrics. The bare network (`--bare-seconds`, before and after the
+back from the run's `time/<phase>_s` metrics. The bare network (`--bare-seconds`, before and after the
 fold; each the median step, the two averaged) is the run's network on random inputs of the run's batch and input
 shape: forward, cross-entropy, backward and the SGD step, nothing else. The ratio of the two rates is
 what the training loop costs on top of the kernels. The same for prediction: the network's forward and
@@ -110,30 +110,33 @@ def main(argv=None) -> None:
 
         client = MlflowClient(f"sqlite:///{tmp}/mlruns/mlflow.db")
         (r,) = client.search_runs([client.get_experiment_by_name("meshseg").experiment_id])
-        m = r.data.metrics
+        m, n = r.data.metrics, r.data.params
 
     print(f"fold: {r.info.run_name}  (overrides: {' '.join(overrides[:-2])})")
     print(
-        f"{int(m['n_train_samples'])} training samples x {int(m['n_epochs'])} epochs, "
-        f"{int(m['n_test_faces'])} test faces, test_acc {m['test_acc']:.4f} (raw {m['test_acc_raw']:.4f})"
+        f"{n['n_train_samples']} training samples x {n['n_epochs']} epochs, "
+        f"{n['n_test_faces']} test faces, test/acc {m['test/acc']:.4f} (raw {m['test/acc_raw']:.4f})"
     )
     print(f"{'phase':<12} {'seconds':>8}")
     for phase in PHASES:
-        if f"time_{phase}_s" in m:
-            print(f"{phase:<12} {m[f'time_{phase}_s']:>8.2f}")
+        if f"time/{phase}_s" in m:
+            print(f"{phase:<12} {m[f'time/{phase}_s']:>8.2f}")
     print(f"{'(fold wall)':<12} {wall:>8.2f}")
-    print(f"training: {m['train_samples_per_s']:.0f} samples/s; prediction: {m['predict_faces_per_s']:.0f} faces/s")
+    print(
+        f"training: {m['speed/train_samples_per_s']:.0f} samples/s; "
+        f"prediction: {m['speed/predict_faces_per_s']:.0f} faces/s"
+    )
     if is_net:
         rates = [before[0], after[0]]
         bare = statistics.mean(rates)
         print(
             f"bare network: {bare:.0f} samples/s (mean of before {before[0]:.0f} and after {after[0]:.0f}; "
-            f"{before[1]} + {after[1]} steps); training / bare = {m['train_samples_per_s'] / bare:.2f}"
+            f"{before[1]} + {after[1]} steps); training / bare = {m['speed/train_samples_per_s'] / bare:.2f}"
         )
         fwd = statistics.mean([forward_before, forward_after])
         print(
             f"bare forward: {fwd:.0f} faces/s (before {forward_before:.0f}, after {forward_after:.0f}); "
-            f"prediction / bare forward = {m['predict_faces_per_s'] / fwd:.2f}"
+            f"prediction / bare forward = {m['speed/predict_faces_per_s'] / fwd:.2f}"
         )
 
 

@@ -176,27 +176,30 @@ def label_comparison_png(
     vertices: np.ndarray,
     faces: np.ndarray,
     pred: np.ndarray,
-    gt: np.ndarray,
+    gt: np.ndarray | None,
     label_names: list[str],
     *,
     title: str = "",
     size: int = 320,
 ) -> bytes:
     """PNG: the mesh coloured by predicted (left) and ground-truth (right) labels from the same camera, a
-    colour legend, and the area-weighted accuracy in the title."""
+    colour legend, and the area-weighted accuracy in the title. Without ground truth (gt None): the
+    predicted labels alone, titled `title`."""
     n = len(label_names)
-    pred, gt = np.asarray(pred, np.int64), np.asarray(gt, np.int64)
+    panels = [(np.asarray(pred, np.int64), "predicted")]
+    if gt is not None:
+        panels.append((np.asarray(gt, np.int64), "ground truth"))
     handles = [Patch(color=c, label=name) for c, name in zip(label_colors(n), label_names)]
-    if np.any((pred < 0) | (pred >= n) | (gt < 0) | (gt >= n)):
+    if any(np.any((labels < 0) | (labels >= n)) for labels, _ in panels):
         handles.append(Patch(color=UNLABELLED, label="unlabelled"))
     columns = 1 + (len(handles) - 1) // 20
-    fig = _figure(2 * size + 130 * columns, size + 60, layout="constrained")
-    for ax, labels, name in zip(fig.subplots(1, 2), (pred, gt), ("predicted", "ground truth")):
+    fig = _figure(len(panels) * size + 130 * columns, size + 60, layout="constrained")
+    for ax, (labels, name) in zip(np.atleast_1d(fig.subplots(1, len(panels))), panels):
         ax.imshow(render_labels(vertices, faces, labels, n, size=size), interpolation="nearest")
         ax.set_title(name)
         ax.set_axis_off()
     fig.legend(handles=handles, loc="outside right center", ncols=columns, fontsize="small", frameon=False)
-    fig.suptitle(_accuracy_title(title, _area_accuracy(vertices, faces, pred, gt)))
+    fig.suptitle(title if gt is None else _accuracy_title(title, _area_accuracy(vertices, faces, panels[0][0], gt)))
     return _png(fig)
 
 

@@ -28,7 +28,7 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 from meshseg.errors import ConfigError, MeshsegError
-from meshseg.tracking import FoldRecord, Tracker, flatten, fold_identity
+from meshseg.tracking import FoldRecord, Tracker, fold_identity
 
 log = logging.getLogger(__name__)
 
@@ -41,11 +41,19 @@ def _portable(tags: dict) -> dict:
     return {k: v for k, v in sorted(tags.items()) if not k.startswith(_LOCAL_TAGS)}
 
 
+def run_name(tags: dict) -> str:
+    """A fold run's name by today's format (records made before it carry an earlier one)."""
+    t = tags
+    return FoldRecord.name(t["category"], t["fold"], t["model"], t["branches"], t["features"], t["split"], t["budget"])
+
+
 def record_of(tracker: Tracker, run) -> dict:
     """One FINISHED fold run as a record (plain JSON types)."""
     import yaml
 
     run_id = run.info.run_id
+    metrics, counts = FoldRecord.upgrade(run.data.metrics)  # a run logged under earlier metric names too
+    counts.update({k: int(v) for k, v in run.data.params.items() if k.startswith("n_")})
     config = yaml.safe_load(Path(tracker.client.download_artifacts(run_id, FoldRecord.CONFIG)).read_text())
     with open(tracker.client.download_artifacts(run_id, FoldRecord.PER_MESH), newline="") as f:
         rows = [
@@ -55,10 +63,11 @@ def record_of(tracker: Tracker, run) -> dict:
     return {
         "format": FORMAT,
         "config_hash": run.data.tags["config_hash"],
-        "name": run.info.run_name,
+        "name": run_name(run.data.tags),
         "tags": _portable(run.data.tags),
         "config": config,
-        "metrics": dict(sorted(run.data.metrics.items())),
+        "metrics": dict(sorted(metrics.items())),
+        "counts": dict(sorted(counts.items())),
         "per_mesh": rows,
         "start_time": run.info.start_time,
         "end_time": run.info.end_time,
@@ -165,12 +174,15 @@ def import_records(tracker: Tracker, root: Path) -> ImportReport:
             continue
         tags = {**record["tags"], "imported_from": str(path)}
         run = tracker.client.create_run(
-            tracker.experiment_id, start_time=record["start_time"], tags=tags, run_name=record["name"]
+            tracker.experiment_id, start_time=record["start_time"], tags=tags, run_name=run_name(record["tags"])
         )
         run_id = run.info.run_id
-        params = [Param(k, str(v)[:6000]) for k, v in flatten(record["config"]).items()]
+        metrics, counts = FoldRecord.upgrade(record["metrics"])  # records exported under earlier names too
+        counts.update(record.get("counts", {}))
+        params = {**FoldRecord.params(record["config"]), **counts}
+        params = [Param(k, str(v)[:6000]) for k, v in params.items()]
         t = record["end_time"] or record["start_time"]
-        metrics = [Metric(k, float(v), t, 0) for k, v in record["metrics"].items()]
+        metrics = [Metric(k, float(v), t, 0) for k, v in metrics.items()]
         for i in range(0, max(len(params), len(metrics)), 100):
             tracker.client.log_batch(run_id, metrics=metrics[i : i + 100], params=params[i : i + 100])
         tracker.log_fold(run_id, OmegaConf.to_yaml(OmegaConf.create(record["config"])), record["per_mesh"], None)

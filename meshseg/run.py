@@ -34,6 +34,8 @@ log = logging.getLogger("meshseg.run")
 
 BRANCHES = (1, 2, 3, 4)
 RING_ADJACENCY = ("edge", "vertex")
+#: the run tags a fold's saved model carries along (its model.yaml says where it came from)
+ABOUT_MODEL = ("dataset", "category", "fold", "model", "branches", "features", "budget", "config_hash", "git_sha")
 
 
 def known_settings() -> tuple[str, ...]:
@@ -146,10 +148,13 @@ def sweep_cells(cfg: DictConfig, category_given: bool, fold_given: bool) -> list
 
 def _skipped(name: str, chash: str, holder) -> float:
     """Log why a fold is not run (its config is FINISHED, or a live process runs it); its accuracy or NaN."""
-    acc = holder.data.metrics.get("test_acc", float("nan"))
+    from meshseg.tracking import FoldRecord
+
+    metrics = FoldRecord.upgrade(holder.data.metrics)[0]  # a run logged under the earlier names too
+    acc = metrics.get(FoldRecord.ACC, float("nan"))
     if holder.info.status == "FINISHED":
         log.info(
-            "skip: %s — config %s already has FINISHED run %s (test_acc %.4f)", name, chash, holder.info.run_id, acc
+            "skip: %s — config %s already has FINISHED run %s (test/acc %.4f)", name, chash, holder.info.run_id, acc
         )
     else:
         log.info(
@@ -165,11 +170,7 @@ def _skipped(name: str, chash: str, holder) -> float:
 def run(cfg: DictConfig) -> float:
     """One fold: skip if its config already has a FINISHED run (or a live one), else resolve -> fit and
     predict -> refine -> score -> record. Returns the fold's test accuracy (area-weighted, refined)."""
-    from meshseg.metrics import mesh_scores
-    from meshseg.tracking import FoldRecord, Tracker, flatten, fold_identity, system_tags
-    from meshseg.training.context import TrainContext
-    from meshseg.training.data import FeatureSource
-    from meshseg.training.fit import fit_predict
+    from meshseg.tracking import FoldRecord, Tracker, fold_identity, system_tags
 
     # resolve: every setting checked, the fold's identity, and whether it has run already
     setup_trainer(cfg.trainer)
@@ -178,7 +179,7 @@ def run(cfg: DictConfig) -> float:
     features, refinement = FeatureSet.from_config(cfg.features), build_refinement(cfg.refine)
     config, chash = fold_identity(cfg, category, fold, dataset.data_hash)
     split = split_name(cfg.split)
-    name = f"{cfg.model.name} {cfg.branches}B {dataset.name}/{category} {split} fold {fold.index}"
+    name = FoldRecord.name(category, fold.index, cfg.model.name, cfg.branches, features.name, split, cfg.budget.name)
     tracker = Tracker(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_dir)
     done = tracker.finished(chash) if cfg.tracking.skip_finished else None
     if done is not None:
@@ -195,51 +196,79 @@ def run(cfg: DictConfig) -> float:
     )
     command = " ".join(["python -m meshseg.run", *(job_overrides() or [])])
     tags.update(system_tags("meshseg.run", command, tags["git_sha"]), **sweep_tag())
-    log.info("run: %s (config %s, %d train / %d test meshes)", name, chash, len(fold.train), len(fold.test))
     run_id = None
     if cfg.tracking.skip_finished:  # claim the config: a concurrent sweep may have taken it since the check
         run_id, holder = tracker.claim(name, tags, cfg.tracking.heartbeat_s, cfg.tracking.lease_timeout_s)
         if run_id is None:
             return _skipped(name, chash, holder)
 
-    with terminate_interrupts(), tracker.run(name, tags, flatten(config), run_id) as run_id:
-        # fit and predict
-        source = FeatureSource(dataset, category, features, cfg.paths.cache_dir, cfg.branches, cfg.ring_adjacency)
-        ctx = TrainContext.from_config(cfg.budget, cfg.trainer, cfg.seed, tracker.lightning_logger(run_id))
-        preds = fit_predict(source, fold, cfg.model, cfg.budget.faces_per_mesh, ctx, cfg.workers)
-        timings = Timings(preds.timings)
-        # refine: the refinement's own per-mesh inputs (e.g. AGD) come from the feature cache
-        with timings("refine"):
-            raw = [p.argmax(axis=1) for p in preds.probabilities]
-            labels = [
-                refinement(m, p, source.groups(m, refinement.needs)) for m, p in zip(preds.meshes, preds.probabilities)
-            ]
-        # score
-        rows = mesh_scores(preds.meshes, raw, labels)
-        metrics = {
-            FoldRecord.ACC: np.mean([r["acc"] for r in rows]),
-            FoldRecord.ACC_RAW: np.mean([r["acc_raw"] for r in rows]),
-            **{f"n_{k}": v for k, v in preds.counts.items()},
-            "train_samples_per_s": preds.counts["train_samples"] * preds.counts["epochs"] / preds.timings["train"],
-            "predict_faces_per_s": preds.counts["test_faces"] / max(preds.timings.get("predict", 0.0), 1e-9),
-        }
-        # record (the timings last, so that they include the recording itself)
-        with timings("log"):
-            arrays = FoldRecord.predictions(preds.meshes, preds.probabilities, raw, labels)
-            tracker.log_fold(run_id, OmegaConf.to_yaml(config), rows, arrays)
-        if cfg.tracking.renders:
-            with timings("pictures"):
-                tracker.log_pictures(run_id, preds.meshes, labels, rows, int(cfg.tracking.renders))
-        tracker.log_metrics(run_id, {**metrics, **{f"time_{k}_s": v for k, v in timings.items()}})
+    with terminate_interrupts(), tracker.run(name, tags, FoldRecord.params(config), run_id) as run_id:
+        log.info("run: %s (config %s, %d train / %d test meshes)", name, chash, len(fold.train), len(fold.test))
+        log.info("run %s: %s", run_id, tracker.run_url(run_id))
+        tracker.log_dataset(run_id, f"{dataset.name}/{category}", dataset.data_hash, dataset_source(dataset))
+        try:
+            with system_metrics(cfg.tracking, tracker, run_id):
+                metrics = _fold(cfg, config, tags, tracker, run_id, dataset, fold, features, refinement)
+        finally:  # the job's overrides and log, also (especially) for a run that failed
+            tracker.log_files(run_id, job_files())
     log.info(
-        "done: %s test_acc %.4f (raw %.4f), train %.1f s, run %s",
+        "done: %s test/acc %.4f (raw %.4f), train %.1f s, run %s",
         name,
         metrics[FoldRecord.ACC],
         metrics[FoldRecord.ACC_RAW],
-        preds.timings["train"],
+        metrics["time/train_s"],
         run_id,
     )
     return float(metrics[FoldRecord.ACC])
+
+
+def _fold(cfg, config: dict, tags: dict, tracker, run_id: str, dataset, fold: Fold, features, refinement) -> dict:
+    """Fit and predict, refine, score, record: the body of one fold's run (`config` and `tags`: its resolved
+    config and its tags). Returns its metrics."""
+    from meshseg.metrics import mesh_scores
+    from meshseg.predict import FoldModel
+    from meshseg.tracking import FoldRecord
+    from meshseg.training.context import TrainContext
+    from meshseg.training.data import FeatureSource
+    from meshseg.training.fit import fit_predict
+
+    # fit and predict
+    category = tags["category"]
+    source = FeatureSource(dataset, category, features, cfg.paths.cache_dir, cfg.branches, cfg.ring_adjacency)
+    ctx = TrainContext.from_config(cfg.budget, cfg.trainer, cfg.seed, tracker.lightning_logger(run_id))
+    preds = fit_predict(source, fold, cfg.model, cfg.budget.faces_per_mesh, ctx, cfg.workers)
+    timings = Timings(preds.timings)
+    # refine: the refinement's own per-mesh inputs (e.g. AGD) come from the feature cache
+    log.info("refining %d test meshes (%s)", len(preds.meshes), cfg.refine.name)
+    with timings("refine"):
+        raw = [p.argmax(axis=1) for p in preds.probabilities]
+        labels = [
+            refinement(m, p, source.groups(m, refinement.needs)) for m, p in zip(preds.meshes, preds.probabilities)
+        ]
+    # score
+    rows = mesh_scores(preds.meshes, raw, labels)
+    metrics = {
+        FoldRecord.ACC: np.mean([r["acc"] for r in rows]),
+        FoldRecord.ACC_RAW: np.mean([r["acc_raw"] for r in rows]),
+        "speed/train_samples_per_s": preds.counts["train_samples"] * preds.counts["epochs"] / preds.timings["train"],
+        "speed/predict_faces_per_s": preds.counts["test_faces"] / max(preds.timings.get("predict", 0.0), 1e-9),
+    }
+    # record (the timings last, so that they include the recording itself)
+    log.info("logging predictions%s", ", the model" if cfg.tracking.log_model else "")
+    with timings("log"):
+        tracker.log_params(run_id, {f"n_{k}": v for k, v in preds.counts.items()})
+        arrays = FoldRecord.predictions(preds.meshes, preds.probabilities, raw, labels)
+        tracker.log_fold(run_id, OmegaConf.to_yaml(config), rows, arrays)
+        if cfg.tracking.log_model:
+            about = {"run_id": run_id, **{k: tags[k] for k in ABOUT_MODEL}}
+            tracker.log_model(run_id, FoldModel.of_fold(config, preds, dataset.label_names(category), about))
+    if cfg.tracking.renders:
+        log.info("rendering %d test meshes", min(int(cfg.tracking.renders), len(preds.meshes)))
+        with timings("pictures"):
+            tracker.log_pictures(run_id, preds.meshes, labels, rows, int(cfg.tracking.renders))
+    metrics.update({f"time/{k}_s": v for k, v in timings.items()})
+    tracker.log_metrics(run_id, metrics)
+    return metrics
 
 
 @contextmanager
@@ -259,6 +288,41 @@ def terminate_interrupts():
         yield
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+def dataset_source(dataset: MeshDataset) -> str:
+    """Where a dataset's meshes are read from: its root folder, or the generator for synthetic data."""
+    root = getattr(dataset, "root", None)
+    return str(Path(root).absolute()) if root is not None else f"meshseg.data.synthetic ({dataset.name})"
+
+
+@contextmanager
+def system_metrics(tracking: DictConfig, tracker, run_id: str):
+    """MLflow's CPU, memory and GPU samples as the run's system metrics, when `tracking.system_metrics`."""
+    if not tracking.get("system_metrics"):
+        yield
+        return
+    import mlflow
+    from mlflow.system_metrics.system_metrics_monitor import SystemMetricsMonitor
+
+    mlflow.set_tracking_uri(tracker.uri)  # the monitor logs through the default client
+    monitor = SystemMetricsMonitor(run_id, sampling_interval=10, samples_before_logging=1)
+    monitor.start()
+    try:
+        yield
+    finally:
+        monitor.finish()
+
+
+def job_files() -> list[Path]:
+    """The Hydra job's `overrides.yaml` and log file (none outside a Hydra app)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if not HydraConfig.initialized():
+        return []
+    hc = HydraConfig.get()
+    out = Path(hc.runtime.output_dir)
+    return [out / (hc.output_subdir or ".hydra") / "overrides.yaml", out / f"{hc.job.name}.log"]
 
 
 def sweep_tag() -> dict[str, str]:

@@ -1,4 +1,4 @@
-"""Seconds per phase of a fold (features, inputs, train, predict, refine, ...), logged as `time_<phase>_s`."""
+"""Seconds per phase of a fold (features, inputs, train, predict, refine, ...), logged as `time/<phase>_s`."""
 
 from __future__ import annotations
 

@@ -51,8 +51,18 @@ class FoldRecord:
         "git_sha",
         "data_hash",
     )
-    #: the two accuracies every fold logs (area-weighted mean over the test meshes), after and before refinement
-    ACC, ACC_RAW = "test_acc", "test_acc_raw"
+    #: the two accuracies every fold logs (area-weighted mean over the test meshes), after and before refinement.
+    #: Metrics are named by role: train/* (per epoch, from Lightning), test/*, time/<phase>_s, speed/*;
+    #: counts (samples, faces, epochs) are params n_*.
+    ACC, ACC_RAW = "test/acc", "test/acc_raw"
+    #: the names runs logged before metrics were named by role (results/ records carry them)
+    LEGACY = {
+        "test_acc": ACC,
+        "test_acc_raw": ACC_RAW,
+        "train_loss": "train/loss",
+        "train_acc": "train/acc",
+        "lr": "train/lr",
+    }
     #: artifact: the resolved config (YAML)
     CONFIG = "config.yaml"
     #: artifact: one row per test mesh, these columns (accuracies in [0, 1], area-weighted)
@@ -93,6 +103,33 @@ class FoldRecord:
         }
 
     @staticmethod
+    def name(category: str, fold: int, model: str, branches, features: str, split: str, budget: str) -> str:
+        """The run's name, what differs between a sweep's runs first (the UI's table cuts names short):
+        `Glasses f2 · cnn1d 3B f800 · 5fold · cpu`."""
+        return f"{category} f{fold} · {model} {branches}B {features} · {split} · {budget}"
+
+    @staticmethod
+    def upgrade(metrics: dict) -> tuple[dict, dict]:
+        """(metrics, count params) by today's names from a run's metrics under any earlier naming."""
+        out, counts = {}, {}
+        for k, v in metrics.items():
+            if k.startswith("n_"):
+                counts[k] = int(v)
+            elif k.startswith("time_") and k.endswith("_s"):
+                out[f"time/{k[5:]}"] = v
+            elif k.endswith("_per_s") and "/" not in k:
+                out[f"speed/{k}"] = v
+            else:
+                out[FoldRecord.LEGACY.get(k, k)] = v
+        return out, counts
+
+    @staticmethod
+    def params(config: dict) -> dict[str, str]:
+        """The run's params as the UI lists them: the resolved config flattened, a list as one value, the
+        tracking settings left out (they say where a run is kept, not what it is)."""
+        return {k: v for k, v in flatten(config, lists=False).items() if k.split(".")[0] != "tracking"}
+
+    @staticmethod
     def predictions(meshes, probabilities, raw, labels) -> dict[str, np.ndarray]:
         """The per-face arrays of every test mesh, keyed `<prefix><mesh id>` (PREDICTION_ARRAYS)."""
         out = {}
@@ -105,14 +142,17 @@ class FoldRecord:
 CONTRACT_TAGS = FoldRecord.TAGS
 
 
-def flatten(node, prefix: str = "") -> dict[str, object]:
-    """{"a.b.c": leaf} for nested dicts and lists (list items keyed by index)."""
+def flatten(node, prefix: str = "", lists: bool = True) -> dict[str, object]:
+    """{"a.b.c": leaf} for nested dicts and lists (list items keyed by index; with lists=False a list is
+    one leaf, written as JSON)."""
+    if isinstance(node, list) and not lists:
+        return {prefix: json.dumps(node, default=str)}
     items = node.items() if isinstance(node, dict) else enumerate(node) if isinstance(node, list) else None
     if items is None:
         return {prefix: node}
     out: dict[str, object] = {}
     for k, v in items:
-        out.update(flatten(v, f"{prefix}.{k}" if prefix else str(k)))
+        out.update(flatten(v, f"{prefix}.{k}" if prefix else str(k), lists))
     return out
 
 
@@ -220,6 +260,9 @@ def git_sha() -> str:
         return "unknown"
     return sha + ("+dirty" if dirty else "")
 
+
+#: where `make ui` serves a sqlite store's UI
+UI_URL = "http://127.0.0.1:5000"
 
 #: MLflow's store schemes (a `+driver` suffix is allowed on the database ones)
 STORE_SCHEMES = ("sqlite", "postgresql", "mysql", "mssql", "file", "http", "https", "databricks")
@@ -479,14 +522,10 @@ class Tracker:
     def run(self, name: str, tags: dict, params: dict, run_id: str | None = None) -> Iterator[str]:
         """Yield a run's id (`run_id`, claimed before, or a new run) and end it FINISHED, FAILED (error
         text tagged) or KILLED. A claimed run's heartbeat is kept fresh meanwhile."""
-        from mlflow.entities import Param
-
         run_id = run_id or self._create(name, tags).info.run_id
         beat = _Heartbeat(self.client, run_id) if run_id and self._leased(run_id) else None
         try:
-            items = [Param(k, str(v)[:6000]) for k, v in params.items()]
-            for i in range(0, len(items), 100):
-                _retry(lambda i=i: self.client.log_batch(run_id, params=items[i : i + 100]), "log params")
+            self.log_params(run_id, params)
             yield run_id
         except KeyboardInterrupt:
             self._end(beat, run_id, "KILLED")
@@ -522,6 +561,13 @@ class Tracker:
         items = [Metric(k, float(v), now, 0) for k, v in metrics.items()]
         _retry(lambda: self.client.log_batch(run_id, metrics=items), "log metrics")
 
+    def log_params(self, run_id: str, params: dict) -> None:
+        from mlflow.entities import Param
+
+        items = [Param(k, str(v)[:6000]) for k, v in params.items()]
+        for i in range(0, len(items), 100):
+            _retry(lambda i=i: self.client.log_batch(run_id, params=items[i : i + 100]), "log params")
+
     def log_fold(
         self, run_id: str, config_yaml: str, rows: list[dict], predictions: dict[str, np.ndarray] | None
     ) -> None:
@@ -548,6 +594,38 @@ class Tracker:
             if predictions is not None:
                 np.savez_compressed(d / R.PREDICTIONS, **arrays)
                 self.client.log_artifact(run_id, str(d / R.PREDICTIONS))
+
+    def log_model(self, run_id: str, model) -> None:
+        """The fold's model (`meshseg.predict.FoldModel`) as the run's `model/` artifact."""
+        with tempfile.TemporaryDirectory() as tmp:
+            model.save(Path(tmp))
+            _retry(lambda: self.client.log_artifacts(run_id, tmp, "model"), "log model")
+
+    def log_dataset(self, run_id: str, name: str, digest: str, source: str) -> None:
+        """The run's data as MLflow's dataset input (the UI's Datasets column): `name` (dataset/category),
+        `digest` (the data hash) and `source` (where the data is read from)."""
+        from mlflow.entities import Dataset, DatasetInput, InputTag
+
+        data = Dataset(name=name, digest=digest[:36], source_type="local", source=json.dumps({"uri": source}))
+        inp = DatasetInput(data, [InputTag("mlflow.data.context", "training")])
+        _retry(lambda: self.client.log_inputs(run_id, [inp]), "log dataset")
+
+    def log_files(self, run_id: str, paths) -> None:
+        """Files as top-level artifacts (the Hydra job's overrides and log); missing ones are skipped."""
+        for p in paths:
+            if Path(p).is_file():
+                _retry(lambda p=p: self.client.log_artifact(run_id, str(p)), "log files")
+
+    def run_url(self, run_id: str, ui: str | None = None) -> str:
+        """The run's page in the MLflow UI: the tracking server's own, or `ui` (`make ui`'s, for a
+        sqlite store)."""
+        base = self.uri if self.uri.startswith(("http://", "https://")) else (ui or UI_URL)
+        return f"{base.rstrip('/')}/#/experiments/{self.experiment_id}/runs/{run_id}"
+
+    def runs_url(self, ui: str | None = None) -> str:
+        """The experiment's runs table (MLflow 3 opens an experiment in its GenAI view otherwise)."""
+        base = self.uri if self.uri.startswith(("http://", "https://")) else (ui or UI_URL)
+        return f"{base.rstrip('/')}/#/experiments/{self.experiment_id}/runs?workflowType=machine_learning"
 
     def log_pictures(self, run_id: str, meshes, labels, rows: list[dict], n: int) -> None:
         """Artifacts the MLflow UI shows: renders/<mesh>.png (predicted beside ground truth) for up to

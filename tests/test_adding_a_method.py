@@ -68,7 +68,7 @@ def test_a_method_is_one_class_and_one_yaml_file(tmp_path, cache_dir):
         assert run.info.status == "FINISHED"
         assert run.data.tags["branches"] == ("1" if model == "nearest_mean" else "3")
         # 4 parts of a figure: chance is about 0.25; both methods separate them well (measured 0.93, 0.87)
-        assert 0.6 < run.data.metrics["test_acc"] <= 1.0
+        assert 0.6 < run.data.metrics["test/acc"] <= 1.0
         config = client.download_artifacts(run.info.run_id, "config.yaml")
         assert "my_methods." in open(config).read()  # the class the YAML named is in the run's identity
     with np.load(client.download_artifacts(by_model["nearest_mean"].info.run_id, "predictions.npz")) as z:

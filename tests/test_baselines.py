@@ -101,16 +101,16 @@ def test_baseline_runs_through_meshseg_run(paths, model, extra):
     acc = run(compose_run(*SMALL, f"model={model}", "fold=0", *paths, *extra))
     client, (r,) = finished(paths, model)
     assert r.data.tags["model"] == model and r.data.tags["branches"] == "1"
-    assert np.isclose(r.data.metrics["test_acc"], acc) and 0 <= acc <= 1
+    assert np.isclose(r.data.metrics["test/acc"], acc) and 0 <= acc <= 1
     with np.load(client.download_artifacts(r.info.run_id, "predictions.npz")) as z:
         probs = z["probs_0"].astype(np.float32)  # 5fold: fold 0 tests mesh 0
     assert probs.shape[1] == N_CLASSES and np.allclose(probs.sum(axis=1), 1, atol=1e-2)
     curves = {k: [m.value for m in client.get_metric_history(r.info.run_id, k)] for k in r.data.metrics}
     if model.startswith("ae"):  # pre-training lowers each autoencoder's reconstruction error
-        for stage in ("ae1_loss", "ae2_loss"):
+        for stage in ("train/ae1_loss", "train/ae2_loss"):
             assert len(curves[stage]) == 2 and curves[stage][1] < curves[stage][0]
     if model == "ae_nn":
-        assert len(curves["softmax_train_loss"]) == 2 and len(curves["train_loss"]) == 2
+        assert len(curves["train/softmax_loss"]) == 2 and len(curves["train/loss"]) == 2
     if model == "rf":
         assert acc > 0.5  # CF features alone separate the figure's parts far better than chance (0.25)
 

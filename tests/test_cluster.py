@@ -115,7 +115,7 @@ def test_sweeps_on_slurm_log_to_the_server_resume_and_survive_scancel(cluster, t
     assert len({d.data.tags["slurm_job"] for d in done}) == 10
     for d in done:
         rows = list(csv.DictReader(open(client.download_artifacts(d.info.run_id, "per_mesh.csv", str(tmp_path)))))
-        assert len(rows) == 1 and float(rows[0]["acc"]) == pytest.approx(d.data.metrics["test_acc"])
+        assert len(rows) == 1 and float(rows[0]["acc"]) == pytest.approx(d.data.metrics["test/acc"])
     print(f"sweep 1: 10 folds in {time.time() - t0:.0f} s")
 
     # 2. the same sweep again: every fold is skipped, nothing new on the server
@@ -136,7 +136,7 @@ def test_sweeps_on_slurm_log_to_the_server_resume_and_survive_scancel(cluster, t
     assert proc.returncode != 0 and "cluster job ended without a result" in out, out[-3000:]
     wait_queue_empty(env)
     killed = client.get_run(victim.info.run_id)
-    assert killed.info.status == "KILLED" and "test_acc" not in killed.data.metrics
+    assert killed.info.status == "KILLED" and "test/acc" not in killed.data.metrics
     r = sweep(env, *third)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     wait_queue_empty(env)
@@ -193,6 +193,6 @@ def test_sweeps_on_slurm_log_to_the_server_resume_and_survive_scancel(cluster, t
         runs = server_runs(env, "FINISHED", category=category, seed="0")
         assert cells[name]["status"] == "ok" and cells[name]["n_meshes"] == "5"
         assert float(cells[name]["reproduced"]) == pytest.approx(
-            100 * np.mean([x.data.metrics["test_acc"] for x in runs]), abs=1e-3
+            100 * np.mean([x.data.metrics["test/acc"] for x in runs]), abs=1e-3
         )
     assert Path(tmp_path / "cluster/table.md").read_text().count("| Cup |") == 2  # the table, the refinement block

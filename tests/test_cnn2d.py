@@ -227,7 +227,7 @@ def test_cli_run_finishes_tagged_cnn2d_f600_one_branch(env, tmp_path):
     tags = run.data.tags
     assert (tags["model"], tags["features"], tags["branches"], tags["budget"]) == ("cnn2d", "f600", "1", "smoke")
     assert run.data.params["model.net._target_"] == "meshseg.models.cnn2d.ToG15CNN2D"
-    assert 0 <= run.data.metrics["test_acc"] <= 1
+    assert 0 <= run.data.metrics["test/acc"] <= 1
 
 
 def test_cli_rejects_other_branch_counts(env, tmp_path):

@@ -111,3 +111,93 @@ def test_mlflow_ui_serves_the_runs_and_their_pictures_then_stops(smoke_store):
     assert proc.returncode is not None and not group_alive(proc.pid)
     with pytest.raises(OSError):
         socket.create_connection(("127.0.0.1", port), timeout=2).close()
+
+
+# --- the UI itself, in headless Chromium (make ui-test installs Debian's chromium and chromium-driver) ---------
+
+CHROMIUM, CHROMEDRIVER = Path("/usr/bin/chromium"), Path("/usr/bin/chromedriver")
+#: flags for Chromium on a machine without a network (else it keeps trying to reach Google's hosts)
+CHROMIUM_FLAGS = (
+    "--headless --no-sandbox --disable-gpu --disable-quic --no-first-run --disable-background-networking "
+    "--disable-component-update --disable-sync --window-size=1600,4000"
+).split()
+
+
+@pytest.fixture
+def browser(tmp_path):
+    if not (CHROMIUM.exists() and CHROMEDRIVER.exists()):
+        pytest.skip("no headless browser: `make ui-test` installs Debian's chromium and chromium-driver")
+    webdriver = pytest.importorskip("selenium.webdriver", reason="selenium missing: `make install` installs it")
+    from selenium.webdriver.chrome.service import Service
+
+    options = webdriver.ChromeOptions()
+    options.binary_location = str(CHROMIUM)
+    for flag in [*CHROMIUM_FLAGS, f"--user-data-dir={tmp_path / 'chromium'}"]:
+        options.add_argument(flag)
+    driver = webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=options)
+    driver.implicitly_wait(0)
+    yield driver
+    driver.quit()
+
+
+def wait_for(driver, predicate, what: str, timeout: float = 60):
+    """Poll the page until `predicate(body text)` holds (the UI renders after its API calls return)."""
+    from selenium.webdriver.common.by import By
+
+    deadline, text = time.time() + timeout, ""
+    while time.time() < deadline:
+        try:
+            text = driver.find_element(By.TAG_NAME, "body").text
+            if predicate(text):
+                return text
+        except Exception:  # the page is being replaced
+            pass
+        time.sleep(0.5)
+    pytest.fail(f"the UI never showed {what}; it showed:\n{text[:3000]}")
+
+
+@pytest.mark.browser
+def test_the_ui_shows_runs_and_a_runs_source_dataset_curve_and_render(smoke_store, browser):
+    import getpass
+
+    from selenium.webdriver.common.by import By
+
+    from meshseg.tracking import Tracker
+
+    with mlflow_ui(smoke_store) as (base, _, _):
+        tracker = Tracker(f"sqlite:///{smoke_store}/mlflow.db", "meshseg")
+        runs = tracker.runs("attributes.status = 'FINISHED'")
+        names = {r.info.run_name for r in runs}
+        assert len(names) == len(runs) == 18  # one distinct name per fold run
+        # the URL `make ui` prints lands on the runs table, every name in view, what differs first
+        browser.get(tracker.runs_url(base))
+        text = wait_for(browser, lambda t: all(n in t for n in names), "every run name")
+        assert "18 matching runs" in text
+        run = next(r for r in runs if r.data.tags["model"] == "cnn1d")
+        tags = run.data.tags
+        # a run page: source, user, git commit, the command line as description, the dataset
+        browser.get(tracker.run_url(run.info.run_id, base))
+        text = wait_for(browser, lambda t: "About this run" in t and "Datasets" in t, "the run overview")
+        dataset = f"{tags['dataset']}/{tags['category']}"
+        for shown in ("meshseg.run", getpass.getuser(), tags["git_sha"][:7], "python -m meshseg.run", dataset):
+            assert shown in text, shown
+        # the train/loss curve, one point per epoch
+        browser.get(tracker.run_url(run.info.run_id, base) + "/model-metrics")
+        wait_for(browser, lambda t: "train (" in t, "the metric charts")
+        box = browser.find_element(By.CSS_SELECTOR, "input[placeholder='Search metric charts']")
+        box.send_keys("train/loss")
+        wait_for(browser, lambda t: "train (1)" in t and "\nloss\n" in t, "the train/loss chart")
+        # a render of a test mesh, predicted beside ground truth, shown as an image
+        render = next(f.path for f in tracker.client.list_artifacts(run.info.run_id, "renders"))
+        browser.get(tracker.run_url(run.info.run_id, base) + f"/artifacts/{render}")
+        deadline = time.time() + 60
+        while time.time() < deadline:
+            widths = [
+                browser.execute_script("return arguments[0].naturalWidth", i)
+                for i in browser.find_elements(By.TAG_NAME, "img")
+            ]
+            if any(w and w > 300 for w in widths):
+                break
+            time.sleep(0.5)
+        else:
+            pytest.fail(f"no render shown for {render}: image widths {widths}")

@@ -64,5 +64,5 @@ def test_inspect_run_runs_on_the_smoke_store(smoke_store, cache_dir, monkeypatch
     )
     text = outputs(nb)
     assert text.count("image/png") >= 3  # per-mesh bars, render, confusion matrix
-    assert "confusion.png" in text and "renders/mesh_" in text and "test_acc" in text
+    assert "confusion.png" in text and "renders/mesh_" in text and "test/acc" in text
     assert "data_hash" in text and "config_hash" in text  # every tag FoldRecord.TAGS names

@@ -6,6 +6,7 @@ Also the command line (Hydra apps: report.* settings, run overrides, errors) and
 
 import csv
 import re
+import shlex
 import shutil
 import subprocess
 import sys
@@ -101,7 +102,9 @@ def test_the_refinement_block_is_refined_minus_raw_mesh_by_mesh():
 
     s1 = Cell(COL, None, accs=np.array([90.0, 80.0]), gains=np.array([2.0, 0.0]), folds=1, value=85.0, ci=(80.0, 90.0))
     s2 = Cell(COL, None, accs=np.array([70.0]), gains=np.array([-1.0]), folds=1, value=70.0, ci=(70.0, 70.0))
-    manifest = type("M", (), {"columns": (COL,), "title": "t", "source": "", "note": "", "name": "m"})()
+    manifest = type(
+        "M", (), {"columns": (COL,), "title": "t", "source": "", "note": "", "name": "m", "path": Path("m.yaml")}
+    )()
     (avg,) = _averages(manifest, [[s1], [s2]], (None,), 200, 0.95, 0, ("average", "g", "Average"))
     rows = [Row("s1", "set", "g", [s1]), Row("s2", "set", "g", [s2]), Row("Average", "average", "g", [avg])]
     table = Table(manifest, rows, (), "acc", 0.95)
@@ -442,10 +445,19 @@ def test_a_deleted_fold_is_incomplete_and_reproduce_launches_only_it(smoke_store
     assert cell(rows, "Cup", "3B")["status"] == "ok"
     md = (tmp_path / "reports/synthetic/table.md").read_text()
     cup = next(line for line in md.splitlines() if line.startswith("| Cup |"))
-    assert cup.endswith("| incomplete: 1 of 2 folds missing |")
+    assert cup.endswith("| — (1/2) |")
+    # under the table: what is missing, the command that makes it, and how long that should take
+    (line,) = [x for x in md.splitlines() if "cells complete" in x]
+    assert line.startswith("8 of 9 cells complete; 1 fold runs missing. Next: `python -m meshseg.reproduce ")
+    rf = runs_of(tmp_path / "mlruns", filter_string="tags.model = 'rf'")  # the 5 left
+    seconds = np.median([(r.info.end_time - r.info.start_time) / 1000 for r in rf])
+    took = re.search(r"about (\d+) s on one process at the median fold time so far \(RF (\d+) s\)\.$", line)
+    assert took and int(took[1]) == int(took[2]) == round(seconds)  # one missing fold at the median fold time
 
     n = len(runs_of(tmp_path / "mlruns", filter_string="attributes.status = 'FINISHED'"))
-    dry = cli("meshseg.reproduce", *args, "report.dry_run=true", env=env)
+    pasted = shlex.split(line.split("`")[1])  # the printed command, as a user would paste it
+    assert pasted[:3] == ["python", "-m", "meshseg.reproduce"]
+    dry = cli("meshseg.reproduce", *pasted[3:], "report.dry_run=true", env=env)
     assert dry.returncode == 0 and "1 cell(s) lack 1 fold run(s)" in dry.stderr and "category=cup fold=1" in dry.stderr
     assert len(runs_of(tmp_path / "mlruns", filter_string="attributes.status = 'FINISHED'")) == n
     r = cli("meshseg.reproduce", *args, env=env)
@@ -497,6 +509,33 @@ def test_the_report_prints_the_papers_numbers(stem, tmp_path, cache_dir, monkeyp
     first = next(line for line in md.splitlines() if line.startswith(f"| {name} |"))
     assert all(
         f"/ {v:.2f}" in first or f"| {v:.2f}" in first or f"{v:.2f} |" in first for v in values[extra:] if v is not None
+    )
+
+
+def test_an_empty_table_2_says_what_is_missing_and_the_command_runs_exactly_that(tmp_path, cache_dir, monkeypatch):
+    """Table 2 from an empty store: compact cells, then the count of missing fold runs and a
+    `meshseg.reproduce` command that, pasted (dry run), would launch exactly those."""
+    require(PSB_ARCHIVE)
+    monkeypatch.chdir(REPO)  # the command names the manifest relative to where the report ran
+    env = smoke_env(tmp_path, cache_dir)
+    for k in ("MESHSEG_CACHE_DIR", "MESHSEG_MLFLOW_DIR"):
+        monkeypatch.setenv(k, env[k])
+    path = REPO / "experiments/table2_psb_5fold.yaml"
+    report(path, [f"report.out_dir={tmp_path}", "report.log=false", "report.n_boot=10", "report.results=null"])
+    md = (tmp_path / "table2_psb_5fold/table.md").read_text()
+    teddy = next(x for x in md.splitlines() if x.startswith("| Teddy |"))
+    assert teddy.count("— (0/5) /") == 7  # every column: no fold of 5, then the published number
+    (line,) = [x for x in md.splitlines() if "cells complete" in x]
+    command = "python -m meshseg.reproduce experiments/table2_psb_5fold.yaml report.results=null"
+    assert (
+        line
+        == f"0 of 112 cells complete; 560 fold runs missing. Next: `{command}` — no fold timed yet to say how long."
+    )
+    dry = cli("meshseg.reproduce", *shlex.split(command)[3:], "report.dry_run=true", env=env)
+    assert dry.returncode == 0, dry.stderr[-2000:]
+    assert "112 cell(s) lack 560 fold run(s)" in dry.stderr and dry.stderr.count("would run: ") == 112
+    assert (
+        "[112/112] would run: python -m meshseg.run -m" in dry.stderr and "category=Vase fold=0,1,2,3,4" in dry.stderr
     )
 
 

@@ -40,7 +40,10 @@ def test_export_writes_one_small_record_per_finished_run(exported, smoke_store):
     path, r = records[0]
     assert path == out / r["tags"]["dataset"] / r["tags"]["category"] / f"{r['config_hash']}.json"
     assert {row["mesh"] for row in r["per_mesh"]} == set(json.loads(r["tags"]["fold_ids"])["test"])
-    assert {"test_acc", "test_acc_raw", "time_train_s"} <= set(r["metrics"])
+    assert {"test/acc", "test/acc_raw", "time/train_s"} <= set(r["metrics"])
+    assert r["counts"]["n_epochs"] == (1 if r["tags"]["model"] == "rf" else 2) and r["counts"]["n_test_faces"] == sum(
+        row["faces"] for row in r["per_mesh"]
+    )
     assert "cores" in r["tags"]["machine"] and "torch" in r["tags"]["versions"]
     assert "split.k=2" in json.loads(r["tags"]["overrides"])
     assert max(p.stat().st_size for p, _ in records) < 20_000  # no per-face arrays

@@ -186,7 +186,7 @@ def test_one_run_follows_the_tracking_contract_and_reruns_skip(store):
     assert tags["mlflow.user"] and tags["mlflow.source.git.commit"] == tags["git_sha"].removesuffix("+dirty")
     assert "sweep_id" not in tags  # a single run is no sweep
     out = r.stdout + r.stderr
-    epochs = re.findall(r"epoch (\d)/2: lr \S+, train_acc \S+, train_loss \S+; \S+ s, about \d+ s left", out)
+    epochs = re.findall(r"epoch (\d)/2: train/acc \S+, train/loss \S+, train/lr \S+; \S+ s, about \d+ s left", out)
     assert epochs == ["1", "2"], out[-3000:]
     tags = run.data.tags
     assert set(CONTRACT_TAGS) <= set(tags)
@@ -202,31 +202,45 @@ def test_one_run_follows_the_tracking_contract_and_reruns_skip(store):
         tags["features"],
     ) == ("synthetic", "cup", "1", "5fold", "smoke", "cnn1d", "3", "graphcut_agd", "local")
     m = run.data.metrics
-    assert 0 <= m["test_acc_raw"] <= 1 and 0 <= m["test_acc"] <= 1
+    assert 0 <= m["test/acc_raw"] <= 1 and 0 <= m["test/acc"] <= 1
     assert run.data.params["budget.epochs"] == "2" and run.data.params["category"] == "cup"
+    # the name leads with what differs between a sweep's runs; a list is one param; no tracking settings
+    assert run.info.run_name == "cup f1 · cnn1d 3B local · 5fold · smoke"
+    assert run.data.params["features.groups"] == '["curvature", "pca", "gc"]'
+    assert not [k for k in run.data.params if k.startswith("tracking.") or k.startswith("features.groups.")]
+    assert int(run.data.params["n_epochs"]) == 2 and int(run.data.params["n_train_samples"]) > 0
+    (inp,) = run.inputs.dataset_inputs
+    assert inp.dataset.name == "synthetic/cup" and tags["data_hash"].startswith(inp.dataset.digest)
+    assert "meshseg.data.synthetic" in inp.dataset.source
     client = MlflowClient(f"sqlite:///{store}/mlflow.db")
-    assert len(client.get_metric_history(run.info.run_id, "train_loss")) == 2  # one point per epoch
-    lrs = [h.value for h in client.get_metric_history(run.info.run_id, "lr")]
+    assert len(client.get_metric_history(run.info.run_id, "train/loss")) == 2  # one point per epoch
+    lrs = [h.value for h in client.get_metric_history(run.info.run_id, "train/lr")]
     assert np.allclose(lrs, [1e-2, 1e-4])
     local = Path(client.download_artifacts(run.info.run_id, ""))
     assert sorted(p.name for p in local.iterdir()) == [
         "config.yaml",
         "confusion.png",
+        "model",
+        "overrides.yaml",
         "per_mesh.csv",
         "predictions.npz",
         "renders",
+        "run.log",
     ]
+    assert sorted(p.name for p in (local / "model").iterdir()) == ["model.pt", "model.yaml"]
+    assert "category=cup" in (local / "overrides.yaml").read_text()
+    assert "epoch 2/2" in (local / "run.log").read_text()  # the job's own log, as written by the run
     assert [p.name for p in (local / "renders").iterdir()] == ["mesh_1.png"]  # the fold's one test mesh
     assert (local / "confusion.png").read_bytes()[:4] == b"\x89PNG"
     table = (local / "per_mesh.csv").read_text().splitlines()
     assert table[0] == "mesh,faces,area,acc_raw,acc" and table[1].startswith("1,")  # 5fold: fold 1 tests mesh 1
-    assert np.isclose(float(table[1].split(",")[4]), m["test_acc"])
+    assert np.isclose(float(table[1].split(",")[4]), m["test/acc"])
     with np.load(local / "predictions.npz") as z:
         assert z["labels_1"].shape == (int(table[1].split(",")[1]),)
         assert np.allclose(z["probs_1"].astype(np.float32).sum(axis=1), 1, atol=1e-2)
 
     again = meshseg_run(*SMALL, "category=cup", "fold=1")
-    assert again.returncode == 0 and "skip: cnn1d 3B synthetic/cup 5fold fold 1" in again.stdout + again.stderr
+    assert again.returncode == 0 and "skip: cup f1 · cnn1d 3B local · 5fold · smoke" in again.stdout + again.stderr
     assert len(runs(store)) == 1
 
 
@@ -311,7 +325,7 @@ def test_killed_sweep_resumes_doing_only_what_is_missing(store):
     r = meshseg_run(*SMALL, "category=table", "-m")
     assert r.returncode == 0, r.stderr[-3000:]
     out = r.stdout + r.stderr
-    skipped = re.findall(r"skip: cnn1d 3B synthetic/table 5fold fold (\d)", out)
+    skipped = re.findall(r"skip: table f(\d) · cnn1d 3B local", out)
     assert sorted(before) == sorted(skipped)
     finished = runs(store, "FINISHED")
     assert sorted(int(x.data.tags["fold"]) for x in finished) == [0, 1, 2, 3, 4]

@@ -136,7 +136,7 @@ def test_sigterm_mid_run_ends_the_run_killed(store):
     out = proc.communicate(timeout=120)[0]
     assert proc.returncode != 0, out[-2000:]
     (killed,) = runs(store)
-    assert killed.info.status == "KILLED" and "test_acc" not in killed.data.metrics, out[-2000:]
+    assert killed.info.status == "KILLED" and "test/acc" not in killed.data.metrics, out[-2000:]
     assert "SIGTERM received" in out
 
 

@@ -286,6 +286,23 @@ def read_psb_labels(path: str | os.PathLike, n_faces: int) -> tuple[np.ndarray, 
     return labels, tuple(names)
 
 
+def write_psb_labels(path: str | os.PathLike, labels: np.ndarray, names) -> None:
+    """Write per-face labels (indices into `names`) as an L-PSB `_labels.txt`: for each label with faces,
+    its name, then its 1-based face indices (what `read_psb_labels` reads back)."""
+    labels = np.asarray(labels, np.int64)
+    lines = []
+    for i, name in enumerate(names):
+        faces = np.flatnonzero(labels == i) + 1
+        if faces.size:
+            lines += [f"{name}\n", " ".join(map(str, faces.tolist())) + "\n"]
+    _atomic_write_text(Path(path), "".join(lines))
+
+
+def write_seg(path: str | os.PathLike, values: np.ndarray) -> None:
+    """Write a COSEG `.seg`: one integer label per face, in face order."""
+    _atomic_write_text(Path(path), "".join(f"{v}\n" for v in np.asarray(values, np.int64).tolist()))
+
+
 def read_psb_label_names(path: str | os.PathLike) -> tuple[str, ...]:
     """Label names of an L-PSB labels file, without parsing the indices (for vocabularies)."""
     return tuple(dict.fromkeys(name for _, name, _ in _label_blocks(Path(path))))

@@ -56,7 +56,7 @@ def build(manifest: Manifest, cfg: DictConfig) -> Table:
     s = cfg.report
     import_results(manifest, cfg)
     sets = None if s.sets is None else list(s.sets)
-    return collect(
+    table = collect(
         manifest,
         run_overrides(cfg),
         metric=s.metric,
@@ -66,6 +66,10 @@ def build(manifest: Manifest, cfg: DictConfig) -> Table:
         sets=sets,
         paired=None if s.get("paired") is None else tuple(s.paired),
     )
+    # the settings that decide which runs a table lacks go into its `meshseg.reproduce` command
+    if s.get("results", "results") != "results":
+        table.settings += (f"report.results={'null' if s.results is None else s.results}",)
+    return table
 
 
 def log_report(table: Table, files: list[Path], settings: DictConfig) -> str:

@@ -20,6 +20,7 @@ import hashlib
 import os
 import tempfile
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from omegaconf import OmegaConf
@@ -44,6 +45,7 @@ class Cell:
     overrides: tuple[str, ...] = ()  # what `meshseg.run` needs to make this cell's runs
     category: str | None = None  # the dataset's own name for the set
     config_hashes: tuple[str, ...] = ()  # its fold runs (the same in every store the runs are imported into)
+    seconds: tuple[float, ...] = ()  # wall time of each of its fold runs (what the next runs will take)
     members: list[Cell] = field(default_factory=list)  # an average's set cells
     value: float | None = None
     ci: tuple[float, float] | None = None
@@ -65,6 +67,12 @@ class Cell:
     @property
     def n_meshes(self) -> int:
         return sum(m.n_meshes for m in self.members) if self.members else 0 if self.accs is None else len(self.accs)
+
+    def short(self) -> str:
+        """An incomplete cell in a table: `— (done/folds)`, or `— (done/n sets)` for an average."""
+        if self.members:
+            return f"— ({sum(m.status == 'ok' for m in self.members)}/{len(self.members)} sets)"
+        return f"— ({self.folds - len(self.missing)}/{self.folds})"
 
     def why(self) -> str:
         """What keeps an incomplete or unavailable cell from having a number."""
@@ -113,6 +121,8 @@ class Table:
     budget_text: dict[str, str] = field(default_factory=dict)  # budget name -> what it trains on
     paired: Paired | None = None
     refinement: list[tuple[Column, list[PairedRow]]] = field(default_factory=list)  # refined - raw per run column
+    sets: tuple[str, ...] | None = None  # report.sets, when the table keeps only some sets
+    settings: tuple[str, ...] = ()  # other report.* settings that decide which runs it lacks (report.results)
 
     @property
     def budgets(self) -> list[str]:
@@ -121,6 +131,71 @@ class Table:
     @property
     def columns(self) -> tuple[Column, ...]:
         return self.manifest.columns
+
+
+@dataclass
+class Progress:
+    """How far a table is and what fills the rest: set cells complete, fold runs missing, the command
+    that makes them and the time it should take at the fold times measured so far."""
+
+    cells_done: int
+    cells: int
+    runs_missing: int
+    command: str
+    seconds: float  # the missing runs of the timed columns, at their median fold time
+    fold_seconds: dict[str, float]  # median wall time of a fold, by the label of a column that lacks runs
+    untimed: tuple[str, ...]  # labels of the columns lacking runs that have no timed fold yet
+
+    def text(self) -> str:
+        if not self.runs_missing:
+            return f"All {self.cells} cells complete."
+        line = f"{self.cells_done} of {self.cells} cells complete; {self.runs_missing} fold runs missing. "
+        line += f"Next: `{self.command}`"
+        if self.fold_seconds:
+            per = ", ".join(f"{k} {v:.0f} s" for k, v in self.fold_seconds.items())
+            took = (
+                f"{self.seconds:.0f} s"
+                if self.seconds < 120
+                else f"{self.seconds / 60:.0f} min"
+                if self.seconds < 3600
+                else f"{self.seconds / 3600:.1f} h"
+            )
+            line += f" — about {took} on one process at the median fold time so far ({per})"
+            line += f", plus the columns not timed yet: {', '.join(self.untimed)}." if self.untimed else "."
+        else:
+            line += " — no fold timed yet to say how long."
+        return line
+
+
+def progress(table: Table) -> Progress:
+    """The table's Progress (set cells that runs can fill; unavailable ones left out)."""
+    import shlex
+
+    cells = [c for r in table.rows if r.kind == "set" for c in r.cells if c.status in ("ok", "incomplete")]
+    cells = [c for c in cells if c.column.predictions is None]
+    times: dict[str, list[float]] = {}
+    for c in cells:
+        times.setdefault(c.column.label, []).extend(c.seconds)
+    todo = [c for c in cells if c.status == "incomplete"]
+    lacking = list(dict.fromkeys(c.column.label for c in todo))
+    medians = {k: float(np.median(times[k])) for k in lacking if times[k]}
+    path = table.manifest.path
+    try:
+        path = path.resolve().relative_to(Path.cwd())
+    except ValueError:
+        pass
+    args = ["python", "-m", "meshseg.reproduce", str(path), *table.overrides, *table.settings]
+    if table.sets is not None:
+        args.append(f"report.sets=[{','.join(table.sets)}]")
+    return Progress(
+        cells_done=len(cells) - len(todo),
+        cells=len(cells),
+        runs_missing=sum(len(c.missing) for c in todo),
+        command=shlex.join(args),
+        seconds=sum(len(c.missing) * medians[c.column.label] for c in todo if c.column.label in medians),
+        fold_seconds=medians,
+        untimed=tuple(k for k in lacking if k not in medians),
+    )
 
 
 def bootstrap_ci(samples: list[np.ndarray], n_boot: int, level: float, rng: np.random.Generator) -> tuple[float, float]:
@@ -221,6 +296,7 @@ def _fill(cell: Cell, category: str, dataset, split, resolved: dict, runs: _Runs
             found.append(run)
     cell.folds, cell.missing = len(folds), tuple(missing)
     cell.config_hashes = tuple(r.data.tags["config_hash"] for r in found)
+    cell.seconds = tuple((r.info.end_time - r.info.start_time) / 1000 for r in found if r.info.end_time)
     if not missing:
         scored = [pair for r in found for pair in runs.mesh_accuracies(r)]
         cell.meshes, cell.accs = tuple(m for m, _ in scored), np.array([a[metric] for _, a in scored])
@@ -350,6 +426,7 @@ def collect(
             )
         )
     table = Table(manifest, rows, tuple(overrides), metric, level, budget_text)
+    table.sets = None if sets is None else tuple(str(s) for s in sets)
     if paired is not None:
         table.paired = compare(table, *paired, n_boot=n_boot, seed=seed)
     table.refinement = [

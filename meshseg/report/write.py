@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from meshseg.report.config import METRIC_TEXT
-from meshseg.report.table import Cell, Table
+from meshseg.report.table import Cell, Table, progress
 
 #: the paper's LaTeX label in a manifest's `source`, shown in headers as its bare name (no LaTeX there)
 _LABEL = re.compile(r"\\label\{([^}]*)\}")
@@ -38,6 +38,8 @@ def _ours(
         return ok.format(v=cell.value, lo=cell.ci[0], hi=cell.ci[1])
     if cell.status == "published":
         return published
+    if cell.status == "incomplete":
+        return cell.short()
     return missing.format(status=cell.status, why=escape(cell.why()))
 
 
@@ -76,6 +78,7 @@ def markdown(table: Table) -> str:
     for row in table.rows:
         label = row.label if row.kind == "set" else f"**{row.label}**"
         out.append(f"| {label} | " + " | ".join(_md_cell(c) for c in row.cells) + " |")
+    out += ["", progress(table).text()]
     if table.paired is not None:
         p = table.paired
         out += [
@@ -126,7 +129,7 @@ def _raw_refined(cell: Cell, gain: float, metric: str) -> tuple[float, float]:
 
 def _refinement_md(cell: Cell, r, metric: str) -> str:
     if r.value is None:
-        return r.why if r.kind == "set" else "—"
+        return "—" if r.kind != "set" or r.why == "incomplete" else r.why
     raw, refined = _raw_refined(cell, r.value, metric)
     return f"{raw:.2f} → {refined:.2f} ({r.value:+.2f} [{r.ci[0]:+.2f}, {r.ci[1]:+.2f}])"
 
@@ -259,7 +262,7 @@ def latex(table: Table) -> str:
             ]
         label = _tex(row.label) if row.kind == "set" else rf"\textbf{{{_tex(row.label)}}}"
         lines.append(f"{label} & " + " & ".join(parts) + r" \\")
-    lines += [r"\bottomrule", r"\end{tabular}"]
+    lines += [r"\bottomrule", r"\end{tabular}", "% " + progress(table).text()]
     return "\n".join(lines) + "\n"
 
 
@@ -287,7 +290,7 @@ def html_text(table: Table) -> str:
         f"<h2>{e(table.manifest.title)}</h2>{notes}\n"
         f'<table><tr><th rowspan="2">Set</th>{head}</tr><tr>{sub}</tr>\n'
         + "\n".join(body)
-        + "\n</table></body></html>\n"
+        + f"\n</table><p>{e(progress(table).text())}</p></body></html>\n"
     )
 
 

@@ -3,8 +3,8 @@ other, then a softmax layer and fine-tuning of the whole stack (`AutoencoderSoft
 random forest on the codes (`AutoencoderForest`, "AE & RF").
 
 Networks train with Lightning, one Trainer per stage, every stage for the budget's epochs; their curves
-go to the run's logger under the stage's name (`ae1_loss`, `ae2_loss`, `softmax_train_loss`, and the
-fine-tuning's `train_loss` as for the CNN).
+go to the run's logger under the stage's name (`train/ae1_loss`, `train/ae2_loss`, `train/softmax_loss`,
+and the fine-tuning's `train/loss` as for the CNN).
 """
 
 from __future__ import annotations
@@ -57,8 +57,8 @@ class Reconstruction(pl.LightningModule):
         loss, logged = mse, {}
         if self.sparsity_weight:
             loss = mse + self.sparsity_weight * kl_sparsity(codes, self.sparsity_target)
-            logged[f"{self.stage}_mse"] = mse.detach()
-        logged[f"{self.stage}_loss"] = loss.detach()
+            logged[f"train/{self.stage}_mse"] = mse.detach()
+        logged[f"train/{self.stage}_loss"] = loss.detach()
         self.log_dict(logged, on_step=False, on_epoch=True, batch_size=len(x))
         return loss
 

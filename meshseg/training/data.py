@@ -58,23 +58,39 @@ class FeatureSource:
     def load(self, mesh_id: str) -> tuple[Mesh, list[np.ndarray]]:
         """The mesh and its [X^1, ..., X^B], each (faces, features) float32."""
         mesh = self.mesh(mesh_id)
-        with self.timings("load"):
-            X = self.features.compute(mesh.vertices, mesh.faces, mesh.content_hash, FeatureCache(self.cache_root))
-            check_finite(X, self.features, mesh.source)
-        with self.timings("rings"):
-            return mesh, ring_means(X, mesh.faces, self.branches, self.ring_adjacency)
+        return mesh, mesh_scales(mesh, self.features, self.cache_root, self.branches, self.ring_adjacency, self.timings)
 
     def groups(self, mesh: Mesh, names: tuple[str, ...]) -> np.ndarray | None:
-        """Other feature groups of a mesh (e.g. a refinement's AGD), with the run's parameters for them
-        and cached like every group; None when `names` is empty."""
-        if not names:
-            return None
-        params = {g: self.features.params[g] for g in names if g in self.features.params}
-        fs = FeatureSet("+".join(names), tuple(parse_entry(g) for g in names), params)
-        with self.timings("load"):
-            X = fs.compute(mesh.vertices, mesh.faces, mesh.content_hash, FeatureCache(self.cache_root))
-            check_finite(X, fs, mesh.source)
-        return X
+        """Other feature groups of a mesh (e.g. a refinement's AGD); see `mesh_groups`."""
+        return mesh_groups(mesh, self.features, names, self.cache_root, self.timings)
+
+
+def mesh_scales(
+    mesh: Mesh, features: FeatureSet, cache_root, branches: int, adjacency: str, timings: Timings | None = None
+) -> list[np.ndarray]:
+    """[X^1, ..., X^B] of any mesh, each (faces, features) float32: its features (cached by the
+    mesh's content hash) averaged over the faces <= k-1 steps away."""
+    timings = timings or Timings()
+    with timings("load"):
+        X = features.compute(mesh.vertices, mesh.faces, mesh.content_hash, FeatureCache(cache_root))
+        check_finite(X, features, mesh.source)
+    with timings("rings"):
+        return ring_means(X, mesh.faces, branches, adjacency)
+
+
+def mesh_groups(
+    mesh: Mesh, features: FeatureSet, names: tuple[str, ...], cache_root, timings: Timings | None = None
+) -> np.ndarray | None:
+    """Feature groups `names` of a mesh (e.g. a refinement's AGD), with the feature set's parameters
+    for them and cached like every group; None when `names` is empty."""
+    if not names:
+        return None
+    params = {g: features.params[g] for g in names if g in features.params}
+    fs = FeatureSet("+".join(names), tuple(parse_entry(g) for g in names), params)
+    with (timings or Timings())("load"):
+        X = fs.compute(mesh.vertices, mesh.faces, mesh.content_hash, FeatureCache(cache_root))
+        check_finite(X, fs, mesh.source)
+    return X
 
 
 class Standardiser:

@@ -26,6 +26,8 @@ class FoldPredictions:
     timings: dict[str, float] = field(default_factory=dict)  # seconds per phase (see fit_predict)
     counts: dict[str, int] = field(default_factory=dict)  # train samples, train/test faces, epochs
     parts: dict[str, object] = field(default_factory=dict)  # the fitted model's parts by stage name
+    fitter: object | None = None  # the fitted fitter and the standardiser of its inputs: the fold's model
+    standardiser: object | None = None
 
 
 def fit_predict(
@@ -55,6 +57,7 @@ def fit_predict(
     with timings("train"):
         fitter.fit(train)
 
+    log.info("fold %d: trained in %.1f s; predicting %d test meshes", fold.index, timings["train"], len(fold.test))
     meshes, probabilities = [], []
     for mesh, X in iter_test_inputs(source, fold.test, train.standardiser):
         meshes.append(mesh)
@@ -66,4 +69,4 @@ def fit_predict(
         "test_faces": sum(m.n_faces for m in meshes),
         "epochs": fitter.epochs_,
     }
-    return FoldPredictions(meshes, probabilities, dict(timings), counts, fitter.parts_)
+    return FoldPredictions(meshes, probabilities, dict(timings), counts, fitter.parts_, fitter, train.standardiser)

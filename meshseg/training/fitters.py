@@ -10,9 +10,11 @@ network, one `nn.Module` under `NetFitter`) and one YAML file: see README "Addin
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 
 import numpy as np
+import torch
 from torch import nn
 
 from meshseg.errors import ConfigError
@@ -36,6 +38,20 @@ class Fitter:
 
     def predict_proba(self, X: np.ndarray) -> np.ndarray:
         raise NotImplementedError
+
+    def __getstate__(self) -> dict:
+        # a fitter saved with its run (the model/ artifact) keeps its trained parts, not the run's logger
+        state = dict(self.__dict__)
+        state["context"] = dataclasses.replace(self.context, logger=None)
+        return state
+
+    def to_cpu(self) -> Fitter:
+        """Its networks and context moved to the CPU (a model trained on a GPU, used where there is none)."""
+        self.context = dataclasses.replace(self.context, accelerator="cpu", devices=1, logger=None)
+        for part in self.__dict__.values():
+            if isinstance(part, nn.Module):
+                part.to(torch.device("cpu"))
+        return self
 
 
 class NetFitter(Fitter):

@@ -38,11 +38,11 @@ class Segmenter(pl.LightningModule):
         logits = self.net(x)
         loss = F.cross_entropy(logits, y)
         acc = (logits.detach().argmax(1) == y).float().mean()
-        self.log_dict({"train_loss": loss.detach(), "train_acc": acc}, on_step=False, on_epoch=True, batch_size=len(y))
+        self.log_dict({"train/loss": loss.detach(), "train/acc": acc}, on_step=False, on_epoch=True, batch_size=len(y))
         return loss
 
     def on_train_epoch_start(self) -> None:
-        self.log("lr", self.optimizers().param_groups[0]["lr"], on_step=False, on_epoch=True)
+        self.log("train/lr", self.optimizers().param_groups[0]["lr"], on_step=False, on_epoch=True)
 
     def configure_optimizers(self):
         opt = torch.optim.SGD(
@@ -70,11 +70,12 @@ class Segmenter(pl.LightningModule):
 
 
 class StageSegmenter(Segmenter):
-    """Segmenter whose logged names carry a stage prefix (a multi-stage fitter's softmax stage)."""
+    """Segmenter whose logged names carry a stage prefix (a multi-stage fitter's softmax stage:
+    `train/softmax_loss`)."""
 
     def __init__(self, net: nn.Module, epochs: int, prefix: str = "", **optim):
         super().__init__(net, epochs, **optim)
         self.prefix = prefix
 
     def log(self, name, value, *args, **kwargs):
-        return super().log(self.prefix + name, value, *args, **kwargs)
+        return super().log(name.replace("train/", "train/" + self.prefix, 1), value, *args, **kwargs)

@@ -1,0 +1,212 @@
+"""A fold's trained model, kept with its run, and `python -m meshseg.predict` to label any mesh with it.
+
+    python -m meshseg.predict run_id=<id> mesh=my.off out=my_labels.txt [render=my.png] [tracking.uri=...]
+
+Every fold run logs `model/` (DESIGN "Tracking contract"): `model.pt`, the fitted fitter with the
+standardiser of its inputs and what turns a mesh into those inputs (feature set, branches, ring
+adjacency, refinement, label names), and `model.yaml`, the same settings readable. Predicting runs the
+run's own path: features (cached by the mesh's content hash), X^1..X^B, standardised, the model's
+probabilities, the refinement. `out` ending `.seg` writes one label per face (COSEG's integer label where
+the labels are integers, else the label's index); any other name writes L-PSB's `_labels.txt` format.
+`model.pt` is a pickle: load models from stores you trust.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from meshseg.data.mesh import Mesh
+from meshseg.errors import ConfigError, MeshDataError, MeshsegError, TrackingError
+
+log = logging.getLogger("meshseg.predict")
+
+ARTIFACT = "model"
+
+
+@dataclasses.dataclass
+class FoldModel:
+    fitter: object  # a fitted meshseg.training.fitters.Fitter
+    standardiser: object  # meshseg.training.data.Standardiser of the training faces
+    label_names: tuple[str, ...]
+    features: dict  # the run's `features` config
+    branches: int
+    ring_adjacency: str
+    refine: dict  # the run's `refine` config
+    about: dict  # where it came from: run name, dataset, category, fold, config hash, git sha
+
+    FILE, ABOUT = "model.pt", "model.yaml"
+
+    def save(self, folder: Path) -> None:
+        import torch
+        import yaml
+
+        folder.mkdir(parents=True, exist_ok=True)
+        torch.save(self, folder / self.FILE)
+        readable = {k: v for k, v in dataclasses.asdict(self).items() if k not in ("fitter", "standardiser")}
+        readable["label_names"] = list(self.label_names)
+        (folder / self.ABOUT).write_text(yaml.safe_dump(readable, sort_keys=False))
+
+    @classmethod
+    def of_fold(cls, config: dict, preds, label_names, about: dict) -> FoldModel:
+        """The model `meshseg.run` trained on one fold (`config`: the run's resolved config; `preds`: its
+        `FoldPredictions`; `about`: where it came from)."""
+        return cls(
+            preds.fitter,
+            preds.standardiser,
+            tuple(label_names),
+            config["features"],
+            int(config["branches"]),
+            str(config["ring_adjacency"]),
+            config["refine"],
+            dict(about),
+        )
+
+    @classmethod
+    def load(cls, folder: Path) -> FoldModel:
+        import torch
+
+        path = Path(folder) / cls.FILE
+        try:
+            model = torch.load(path, map_location="cpu", weights_only=False)
+        except Exception as e:  # a truncated file, or one from code that has since changed
+            raise MeshsegError(f"{path}: cannot load the model ({type(e).__name__}: {e})") from None
+        if not isinstance(model, cls):
+            raise MeshsegError(f"{path}: not a meshseg fold model")
+        if not torch.cuda.is_available():
+            model.fitter.to_cpu()
+        return model
+
+    def predict(self, mesh: Mesh, cache_root) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(probabilities (faces, classes), argmax labels, refined labels) of every face of `mesh`."""
+        from omegaconf import OmegaConf
+
+        from meshseg.features.sets import FeatureSet
+        from meshseg.refine import build_refinement
+        from meshseg.training.data import mesh_groups, mesh_scales
+
+        features = FeatureSet.from_config(OmegaConf.create(self.features))
+        refinement = build_refinement(OmegaConf.create(self.refine))
+        scales = mesh_scales(mesh, features, cache_root, self.branches, self.ring_adjacency)
+        P = self.fitter.predict_proba(self.standardiser(np.stack(scales, axis=1)))
+        labels = refinement(mesh, P, mesh_groups(mesh, features, refinement.needs, cache_root))
+        return P, P.argmax(axis=1), labels
+
+
+def read_mesh(path: str) -> Mesh:
+    """An .off or .obj triangle mesh (an .obj's groups are ignored)."""
+    from meshseg.data.io import read_obj, read_off
+
+    p = Path(path)
+    if not p.is_file():
+        raise MeshDataError(p, "no such file")
+    if p.suffix.lower() == ".off":
+        v, f = read_off(p)
+    elif p.suffix.lower() == ".obj":
+        v, f, _, _ = read_obj(p)
+    else:
+        raise MeshDataError(p, f"unknown mesh format {p.suffix!r}: use .off or .obj")
+    return Mesh(v, f, id=p.stem, source=str(p))
+
+
+def write_labels(path: str, labels: np.ndarray, names) -> None:
+    """L-PSB `_labels.txt` format, or `.seg` (see the module doc)."""
+    from meshseg.data.io import write_psb_labels, write_seg
+
+    if str(path).lower().endswith(".seg"):
+        numeric = all(n.lstrip("-").isdigit() for n in names)
+        write_seg(path, np.asarray([int(n) for n in names])[labels] if numeric else labels)
+    else:
+        write_psb_labels(path, labels, names)
+
+
+def load_run_model(tracker, run_id: str) -> tuple[FoldModel, object]:
+    """The model a run logged, and the run; an unknown run or one without a model is one error."""
+    from mlflow.exceptions import MlflowException
+
+    try:
+        run = tracker.client.get_run(run_id)
+    except MlflowException:
+        raise TrackingError(f"run_id={run_id}: no such run in {tracker.uri}") from None
+    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
+    with tempfile.TemporaryDirectory() as tmp:
+        try:
+            folder = tracker.client.download_artifacts(run_id, ARTIFACT, tmp)
+        except (MlflowException, OSError):
+            folder = None
+        if folder is None or not (Path(folder) / FoldModel.FILE).is_file():
+            raise TrackingError(
+                f"run_id={run_id} ({run.info.run_name}) has no {ARTIFACT}/ artifact: it ran with "
+                "tracking.log_model=false, was imported from results/, or ran before runs kept their models"
+            )
+        return FoldModel.load(Path(folder)), run
+
+
+def predict(cfg) -> dict:
+    """Label `cfg.mesh` with run `cfg.run_id`'s model; write `cfg.out` (and `cfg.render`). Returns a summary."""
+    from meshseg.tracking import Tracker
+
+    if not cfg.get("run_id") or not cfg.get("mesh") or not cfg.get("out"):
+        raise ConfigError("meshseg.predict needs run_id=<run id> mesh=<file .off|.obj> out=<labels file>")
+    mesh = read_mesh(str(cfg.mesh))
+    model, run = load_run_model(
+        Tracker(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_dir), cfg.run_id
+    )
+    _, raw, labels = model.predict(mesh, cfg.paths.cache_dir)
+    write_labels(str(cfg.out), labels, model.label_names)
+    if cfg.get("render"):
+        from meshseg.render import label_comparison_png
+
+        title = f"{mesh.id} — {run.info.run_name}"
+        Path(cfg.render).write_bytes(
+            label_comparison_png(mesh.vertices, mesh.faces, labels, None, model.label_names, title=title)
+        )
+    counts = np.bincount(labels, minlength=len(model.label_names))
+    return {"run": run.info.run_name, "faces": mesh.n_faces, "labels": dict(zip(model.label_names, counts.tolist()))}
+
+
+def main(argv=None) -> None:
+    """`python -m meshseg.predict run_id=… mesh=… out=… [render=…] [tracking.*=…] [paths.*=…]`."""
+    from hydra import compose, initialize_config_dir
+
+    from meshseg import CONF_DIR
+
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if not argv or argv[0] in ("-h", "--help"):
+        print(__doc__.strip().split("\n\n")[1])
+        sys.exit(0 if argv else 2)
+    own_keys = ("run_id", "mesh", "out", "render")
+    own = {k: v for k, _, v in (a.partition("=") for a in argv) if k in own_keys}
+    overrides = [a for a in argv if a.partition("=")[0] not in own_keys]
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    try:
+        if bad := [a for a in overrides if not a.startswith(("tracking.", "paths."))]:
+            raise ConfigError(f"meshseg.predict takes {', '.join(own_keys)}, tracking.* and paths.*, not {bad[0]!r}")
+        with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+            cfg = compose("run", overrides=overrides)
+        from omegaconf import OmegaConf
+
+        OmegaConf.set_struct(cfg, False)
+        summary = predict(OmegaConf.merge(cfg, own))
+    except MeshsegError as e:
+        sys.exit(f"error: {e}")
+    log.info(
+        "%s: %d faces labelled with %s -> %s %s",
+        own["mesh"],
+        summary["faces"],
+        summary["run"],
+        own["out"],
+        summary["labels"],
+    )
+
+
+if __name__ == "__main__":
+    from meshseg.predict import main as _main  # the module's own classes, not __main__'s (model.pt names them)
+
+    _main()
