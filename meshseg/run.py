@@ -11,11 +11,14 @@ folds that the command line does not fix.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+import shutil
 import signal
 import sys
 import threading
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 import hydra
@@ -99,6 +102,7 @@ def check_knobs(cfg: DictConfig) -> None:
         raise ConfigError(f"budget {b.name}: epochs and batch_size must be >= 1 and faces_per_mesh >= 1 or null")
     if not (isinstance(cfg.seed, int) and isinstance(cfg.workers, int) and cfg.workers >= 1):
         raise ConfigError(f"seed={cfg.seed} must be an integer and workers={cfg.workers} an integer >= 1")
+    checkpoint_dir(cfg, "")  # tracking.checkpoints checked
     build_refinement(cfg.refine)  # its settings checked before any fold trains, not after
     build_split(cfg.split)
     FeatureSet.from_config(cfg.features)  # unknown groups and bad group parameters
@@ -167,12 +171,29 @@ def _skipped(name: str, chash: str, holder) -> float:
     return acc
 
 
+@dataclass
+class Outcome:
+    """What one fold's job did (a sweep's closing summary counts them): its test accuracy (area-weighted,
+    refined; NaN for a fold another live run holds), and whether it was skipped."""
+
+    category: str
+    fold: int
+    acc: float
+    skipped: bool
+
+
 def run(cfg: DictConfig) -> float:
+    """One fold (see `run_fold`); returns its test accuracy."""
+    return run_fold(cfg).acc
+
+
+def run_fold(cfg: DictConfig) -> Outcome:
     """One fold: skip if its config already has a FINISHED run (or a live one), else resolve -> fit and
-    predict -> refine -> score -> record. Returns the fold's test accuracy (area-weighted, refined)."""
+    predict -> refine -> score -> record."""
     from meshseg.tracking import FoldRecord, Tracker, fold_identity, system_tags
 
     # resolve: every setting checked, the fold's identity, and whether it has run already
+    sweep_progress()
     setup_trainer(cfg.trainer)
     dataset = build_dataset(cfg.dataset)
     category, fold = resolve_cell(cfg, dataset)
@@ -183,7 +204,7 @@ def run(cfg: DictConfig) -> float:
     tracker = Tracker(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_dir)
     done = tracker.finished(chash) if cfg.tracking.skip_finished else None
     if done is not None:
-        return _skipped(name, chash, done)
+        return Outcome(category, fold.index, _skipped(name, chash, done), True)
     tags = FoldRecord.tags(
         cfg,
         dataset=dataset,
@@ -200,7 +221,7 @@ def run(cfg: DictConfig) -> float:
     if cfg.tracking.skip_finished:  # claim the config: a concurrent sweep may have taken it since the check
         run_id, holder = tracker.claim(name, tags, cfg.tracking.heartbeat_s, cfg.tracking.lease_timeout_s)
         if run_id is None:
-            return _skipped(name, chash, holder)
+            return Outcome(category, fold.index, _skipped(name, chash, holder), True)
 
     with terminate_interrupts(), tracker.run(name, tags, FoldRecord.params(config), run_id) as run_id:
         log.info("run: %s (config %s, %d train / %d test meshes)", name, chash, len(fold.train), len(fold.test))
@@ -210,7 +231,10 @@ def run(cfg: DictConfig) -> float:
             with system_metrics(cfg.tracking, tracker, run_id):
                 metrics = _fold(cfg, config, tags, tracker, run_id, dataset, fold, features, refinement)
         finally:  # the job's overrides and log, also (especially) for a run that failed
-            tracker.log_files(run_id, job_files())
+            try:
+                tracker.log_files(run_id, job_files())
+            except Exception as e:  # never hides what ended the run
+                log.warning("run %s: its log and overrides were not stored: %s", run_id, str(e)[:300])
     log.info(
         "done: %s test/acc %.4f (raw %.4f), train %.1f s, run %s",
         name,
@@ -219,7 +243,7 @@ def run(cfg: DictConfig) -> float:
         metrics["time/train_s"],
         run_id,
     )
-    return float(metrics[FoldRecord.ACC])
+    return Outcome(category, fold.index, float(metrics[FoldRecord.ACC]), False)
 
 
 def _fold(cfg, config: dict, tags: dict, tracker, run_id: str, dataset, fold: Fold, features, refinement) -> dict:
@@ -235,7 +259,9 @@ def _fold(cfg, config: dict, tags: dict, tracker, run_id: str, dataset, fold: Fo
     # fit and predict
     category = tags["category"]
     source = FeatureSource(dataset, category, features, cfg.paths.cache_dir, cfg.branches, cfg.ring_adjacency)
-    ctx = TrainContext.from_config(cfg.budget, cfg.trainer, cfg.seed, tracker.lightning_logger(run_id))
+    checkpoints = checkpoint_dir(cfg, tags["config_hash"])
+    logger = tracker.lightning_logger(run_id)
+    ctx = TrainContext.from_config(cfg.budget, cfg.trainer, cfg.seed, logger, checkpoints and str(checkpoints))
     preds = fit_predict(source, fold, cfg.model, cfg.budget.faces_per_mesh, ctx, cfg.workers)
     timings = Timings(preds.timings)
     # refine: the refinement's own per-mesh inputs (e.g. AGD) come from the feature cache
@@ -268,7 +294,20 @@ def _fold(cfg, config: dict, tags: dict, tracker, run_id: str, dataset, fold: Fo
             tracker.log_pictures(run_id, preds.meshes, labels, rows, int(cfg.tracking.renders))
     metrics.update({f"time/{k}_s": v for k, v in timings.items()})
     tracker.log_metrics(run_id, metrics)
+    if checkpoints is not None:  # the fold is recorded: nothing left to resume
+        shutil.rmtree(checkpoints, ignore_errors=True)
     return metrics
+
+
+def checkpoint_dir(cfg: DictConfig, chash: str) -> Path | None:
+    """Where a fold keeps its per-epoch checkpoints (`tracking.checkpoints`: auto = at budget=paper, where a
+    fold trains for hours), keyed by its config hash so that the rerun of a killed fold finds them."""
+    on = cfg.tracking.get("checkpoints", "auto")
+    if on not in (True, False, "auto"):
+        raise ConfigError(f"tracking.checkpoints={on} is not allowed: choose auto, true or false")
+    if on is False or (on == "auto" and cfg.budget.name != "paper"):
+        return None
+    return Path(cfg.paths.cache_dir) / "checkpoints" / chash
 
 
 @contextmanager
@@ -325,6 +364,25 @@ def job_files() -> list[Path]:
     return [out / (hc.output_subdir or ".hydra") / "overrides.yaml", out / f"{hc.job.name}.log"]
 
 
+#: set by meshseg's sweeper for its jobs: how many there are and when the sweep began (time.time())
+SWEEP_JOBS, SWEEP_START = "MESHSEG_SWEEP_JOBS", "MESHSEG_SWEEP_START"
+
+
+def sweep_progress() -> None:
+    """`job k/N` of a -m sweep, with the time left at the pace of the jobs before it."""
+    import os
+    import time
+
+    from hydra.core.hydra_config import HydraConfig
+
+    n, start = os.environ.get(SWEEP_JOBS), os.environ.get(SWEEP_START)
+    if not (n and start and HydraConfig.initialized() and HydraConfig.get().job.get("num") is not None):
+        return
+    k, n, elapsed = int(HydraConfig.get().job.num) + 1, int(n), time.time() - float(start)
+    left = f", about {elapsed / (k - 1) * (n - k + 1) / 60:.0f} min left" if k > 1 else ""
+    log.info("job %d/%d (%.0f min into the sweep%s)", k, n, elapsed / 60, left)
+
+
 def sweep_tag() -> dict[str, str]:
     """{"sweep_id": the sweep's folder name} for a job of a `-m` sweep, so its runs can be found together."""
     from hydra.core.hydra_config import HydraConfig
@@ -355,13 +413,13 @@ def setup_trainer(trainer: DictConfig) -> None:
 
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="run")
-def _app(cfg: DictConfig) -> float | None:
+def _app(cfg: DictConfig) -> dict | None:
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
 
     logging.getLogger("pytorch_lightning.utilities.rank_zero").setLevel(logging.WARNING)  # no device banners
     try:
-        return run(cfg)
+        return dataclasses.asdict(run_fold(cfg))
     except MeshsegError as e:
         if HydraConfig.get().mode == RunMode.MULTIRUN:
             raise  # the sweeper lists it with the other jobs' outcomes, then exits non-zero

@@ -1,5 +1,6 @@
 """`python -m meshseg.data` and the Hydra config groups it composes."""
 
+import re
 import subprocess
 import sys
 
@@ -62,3 +63,30 @@ def test_summary_bad_root_is_one_clear_error(tmp_path):
         r.stderr.strip() == f"error: {tmp_path}/missing.tar.xz: dataset root does not exist "
         "(give a folder or an archive with dataset.root=PATH)"
     )
+
+
+def test_help_lists_every_user_option_and_no_internal_budget():
+    """`meshseg.run --help` is meshseg's own page (conf/hydra/help/meshseg.yaml): examples, then each
+    config group with every option conf/ has, except the `budget/for_*` defaults the datasets pick."""
+    from pathlib import Path
+
+    r = subprocess.run(
+        [sys.executable, "-m", "meshseg.run", "--help"], cwd=REPO, capture_output=True, text=True, timeout=120
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    head = r.stdout.split("== Composed config ==")[0]
+    assert "== Examples ==" in head and "python -m meshseg.run model=cnn1d branches=3 split=5fold -m" in head
+    assert "for_" not in head
+    section = head.split("== Config groups (group=option) ==")[1].split("== Settings ==")[0]
+    entries, current = {}, None
+    for line in section.splitlines():  # a group's line and the more indented lines continuing it
+        if re.match(r"  \w+:", line):
+            current = line.split(":")[0].strip()
+            entries[current] = line
+        elif current and line.startswith("    "):
+            entries[current] += line
+    groups = sorted(p for p in Path(CONF_DIR).iterdir() if p.is_dir() and p.name != "hydra")
+    assert sorted(entries) == [g.name for g in groups]
+    for group in groups:
+        options = {p.stem for p in group.glob("*.yaml") if not p.stem.startswith("for_")}
+        assert options <= set(re.findall(r"\w+", entries[group.name])), (group.name, entries[group.name])

@@ -136,7 +136,9 @@ def test_cli_dataset_run_caches(tmp_path):
     ]
     r = run(*args)
     assert r.returncode == 0, r.stderr[-2000:]
-    last = r.stdout.strip().splitlines()[-1]
+    lines = [line.split(" - ", 1)[-1] for line in r.stdout.strip().splitlines()]  # Hydra's log format
+    assert [line.split(":")[0] for line in lines[:3]] == ["features 1/3", "features 2/3", "features 3/3"]
+    last = lines[-1]
     ds = Synthetic(meshes_per_category=1)
     faces = sum(ds.load(c, "0").n_faces for c in ds.categories)
     assert last.startswith(f"features: 3 meshes, {faces} faces, ") and last.endswith(" faces/s")

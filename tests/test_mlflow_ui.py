@@ -183,10 +183,11 @@ def test_the_ui_shows_runs_and_a_runs_source_dataset_curve_and_render(smoke_stor
             assert shown in text, shown
         # the train/loss curve, one point per epoch
         browser.get(tracker.run_url(run.info.run_id, base) + "/model-metrics")
-        wait_for(browser, lambda t: "train (" in t, "the metric charts")
+        wait_for(browser, lambda t: "\ntrain\n(" in t, "the metric charts")
         box = browser.find_element(By.CSS_SELECTOR, "input[placeholder='Search metric charts']")
         box.send_keys("train/loss")
-        wait_for(browser, lambda t: "train (1)" in t and "\nloss\n" in t, "the train/loss chart")
+        # the search leaves one section, `train`, with one chart, `loss` (MLflow groups metrics by prefix)
+        wait_for(browser, lambda t: "\ntrain\n(1)" in t and "\nloss\n" in t, "the train/loss chart")
         # a render of a test mesh, predicted beside ground truth, shown as an image
         render = next(f.path for f in tracker.client.list_artifacts(run.info.run_id, "renders"))
         browser.get(tracker.run_url(run.info.run_id, base) + f"/artifacts/{render}")

@@ -295,6 +295,40 @@ def test_a_failing_category_is_marked_failed_and_the_others_finish(store, tmp_pa
         assert f"{bad}:" in failed.data.tags["error"]
 
 
+def test_a_killed_fold_resumes_from_its_last_epoch_checkpoint(store, cache_dir):
+    """tracking.checkpoints=true (what budget=paper does on its own): SIGKILL a fold mid-training; its
+    rerun resumes after the last checkpointed epoch, trains only the epochs left, and leaves no checkpoint."""
+    args = [*SMALL, "category=cup", "fold=0", "budget.epochs=8", "tracking.checkpoints=true"]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "meshseg.run", *args],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},  # each line as it is logged
+    )
+    seen = []
+    try:
+        for line in proc.stdout:
+            seen.append(line)
+            if "epoch 3/8:" in line:
+                os.killpg(proc.pid, signal.SIGKILL)
+                break
+    finally:
+        proc.wait(timeout=60)
+    assert proc.returncode == -signal.SIGKILL, "".join(seen)[-3000:]
+    (ckpt,) = (cache_dir / "checkpoints").glob("*/net/last.ckpt")
+    r = meshseg_run(*args)
+    assert r.returncode == 0, r.stderr[-3000:]
+    out = r.stdout + r.stderr
+    resumed = int(re.search(r"net: resuming from its checkpoint after epoch (\d)/8", out)[1])
+    assert resumed >= 2  # epoch 3 was logged before the kill, so epoch 2's checkpoint was written
+    assert re.findall(r"epoch (\d)/8:", out) == [str(e) for e in range(resumed + 1, 9)]  # only the epochs left
+    (run,) = runs(store, "FINISHED")
+    assert run.info.status == "FINISHED" and not ckpt.parent.parent.exists()
+
+
 def test_killed_sweep_resumes_doing_only_what_is_missing(store):
     """SIGKILL a sweep once two folds have FINISHED; rerunning skips those and redoes the rest."""
     args = [sys.executable, "-m", "meshseg.run", *SMALL, "category=table", "-m"]
@@ -327,6 +361,12 @@ def test_killed_sweep_resumes_doing_only_what_is_missing(store):
     out = r.stdout + r.stderr
     skipped = re.findall(r"skip: table f(\d) · cnn1d 3B local", out)
     assert sorted(before) == sorted(skipped)
+    # progress: each job says where the sweep is; the sweep ends with what it did and the accuracy so far
+    assert re.findall(r"job (\d)/5 \(", out) == ["1", "2", "3", "4", "5"] and "min left)" in out
+    n = len(before)
+    assert f"sweep: {5 - n} ran, {n} skipped, 0 failed in " in out
+    accs = [100 * x.data.metrics["test/acc"] for x in runs(store, "FINISHED")]
+    assert f"sweep: mean test/acc by category (fold means, %): table {np.mean(accs):.2f} (5 folds)" in out
     finished = runs(store, "FINISHED")
     assert sorted(int(x.data.tags["fold"]) for x in finished) == [0, 1, 2, 3, 4]
     assert runs(store, "RUNNING") == []  # a run killed mid-way is marked KILLED once redone

@@ -7,6 +7,8 @@ Every job's settings are checked before the first job starts; a bad one ends the
 which then exits non-zero; any other failure keeps its traceback.
 """
 
+import math
+import os
 import sys
 import time
 from collections.abc import Sequence
@@ -30,6 +32,22 @@ class MeshsegSweeperConf:
 
 
 ConfigStore.instance().store(group="hydra/sweeper", name="meshseg", node=MeshsegSweeperConf, provider="meshseg")
+
+
+def summary(returns: list[Sequence[JobReturn]], failed: list[JobReturn], seconds: float) -> str:
+    """The sweep's closing lines: jobs ran / skipped / failed, and the mean test accuracy per category."""
+    done = [r.return_value for batch in returns for r in batch if r.status == JobStatus.COMPLETED]
+    done = [d for d in done if isinstance(d, dict) and "acc" in d]  # meshseg.run's Outcome
+    ran = sum(not d["skipped"] for d in done)
+    lines = [f"sweep: {ran} ran, {len(done) - ran} skipped, {len(failed)} failed in {seconds / 60:.1f} min"]
+    by_category: dict[str, list[float]] = {}
+    for d in done:
+        if not math.isnan(d["acc"]):
+            by_category.setdefault(d["category"], []).append(d["acc"])
+    if by_category:
+        means = [f"{c} {100 * sum(a) / len(a):.2f} ({len(a)} folds)" for c, a in by_category.items()]
+        lines.append("sweep: mean test/acc by category (fold means, %): " + ", ".join(means))
+    return "\n".join(lines)
 
 
 class MeshsegSweeper(BasicSweeper):
@@ -72,6 +90,10 @@ class MeshsegSweeper(BasicSweeper):
         failed: list[JobReturn] = []
         initial_job_idx = 0
         t0 = time.perf_counter()
+        from meshseg.run import SWEEP_JOBS, SWEEP_START
+
+        # each job logs `job k/N` with the time left (meshseg.run.sweep_progress); launchers pass the environment on
+        os.environ[SWEEP_JOBS], os.environ[SWEEP_START] = str(sum(map(len, self.overrides))), f"{time.time():.3f}"
         while not self.is_done():
             batch = self.get_job_batch()
             self.validate_batch_is_legal(batch)
@@ -88,6 +110,7 @@ class MeshsegSweeper(BasicSweeper):
             failed.extend(r for r in results if r.status != JobStatus.COMPLETED)
             initial_job_idx += len(batch)
             returns.append(results)
+        print(summary(returns, failed, time.perf_counter() - t0), file=sys.stderr, flush=True)
         if failed:
             other = [r for r in failed if not isinstance(r._return_value, MeshsegError)]
             if other:

@@ -7,8 +7,8 @@ CF figure. Entries are written `group` or `group[a:b]` (columns a..b-1 of that g
 
 from __future__ import annotations
 
+import logging
 import re
-import sys
 import time
 from dataclasses import dataclass, field
 
@@ -19,6 +19,8 @@ from meshseg.errors import ConfigError, MeshDataError
 from meshseg.features.cache import FeatureCache
 from meshseg.features.operators import MeshOperators
 from meshseg.features.registry import get_group
+
+log = logging.getLogger(__name__)
 
 _ENTRY = re.compile(r"^(\w+)(?:\[(\d*):(\d*)\])?$")
 
@@ -142,26 +144,23 @@ def compute_dataset(
     cache_root: str | None,
     jobs: list[tuple[str, str]],
     workers: int = 2,
-    out=None,
 ) -> tuple[int, int, float]:
     """Features of the meshes `jobs` ((category, mesh id) pairs), `workers` meshes at a time, into the
-    cache; one line per mesh, then the total (to `out`, default stdout)."""
+    cache; one log line per mesh (k/N, with the time left at the pace so far), then the total."""
     from joblib import Parallel, delayed
-    from tqdm import tqdm
 
-    out = out or sys.stdout
     t0 = time.perf_counter()
     n_faces = 0
     results = Parallel(n_jobs=workers, return_as="generator_unordered")(
         delayed(_one)(dataset, c, m, fs, cache_root) for c, m in jobs
     )
-    with tqdm(total=len(jobs), unit="mesh", file=sys.stderr, disable=None) as bar:
-        for category, mesh_id, faces, seconds in results:
-            n_faces += faces
-            bar.update()
-            bar.write(
-                f"{category}/{mesh_id}: {faces} faces in {seconds:.1f} s ({faces / seconds:.0f} faces/s)", file=out
-            )
+    for k, (category, mesh_id, faces, seconds) in enumerate(results, 1):
+        n_faces += faces
+        left = (time.perf_counter() - t0) / k * (len(jobs) - k)
+        log.info(
+            "features %d/%d: %s/%s, %d faces in %.1f s (%.0f faces/s); about %.0f min left",
+            *(k, len(jobs), category, mesh_id, faces, seconds, faces / seconds, left / 60),
+        )
     elapsed = time.perf_counter() - t0
-    print(f"features: {len(jobs)} meshes, {n_faces} faces, {n_faces / elapsed:.0f} faces/s", file=out)
+    log.info("features: %d meshes, %d faces, %.0f faces/s", len(jobs), n_faces, n_faces / elapsed)
     return len(jobs), n_faces, elapsed

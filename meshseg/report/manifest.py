@@ -67,6 +67,8 @@ class Manifest:
     total: str | None  # label of the average over every set of every group
     published_total: tuple[float | None, ...]
     path: Path
+    #: what the `published` numbers are: "Published" (the paper's) or e.g. "Reference" (a pinned run's)
+    compared_with: str = "Published"
 
     def cell_overrides(self, group: Group, column: Column) -> list[str]:
         """Run overrides of one (group, column): the manifest's, then the group's, then the column's."""
@@ -98,7 +100,9 @@ def load_manifest(path: str | Path) -> Manifest:
     """Read and check a manifest; every problem is reported with the file's name."""
     path = Path(path)
     if not path.is_file():
-        raise ManifestError(path, "no such manifest file")
+        shipped = sorted((Path(__file__).resolve().parents[2] / "experiments").glob("*.yaml"))
+        known = ", ".join(f"experiments/{p.name}" for p in shipped)
+        raise ManifestError(path, "no such manifest file" + (f"; the shipped manifests: {known}" if known else ""))
     try:
         doc = yaml.safe_load(path.read_text())
     except yaml.YAMLError as e:
@@ -171,4 +175,5 @@ def load_manifest(path: str | Path) -> Manifest:
         total.get("label"),
         _numbers(total.get("published"), n, path, "total published"),
         path,
+        str(doc.get("compared_with", "Published")),
     )

@@ -48,10 +48,10 @@ def header_lines(table: Table) -> list[str]:
     budgets = "; ".join(f"{b} ({table.budget_text.get(b, '?')})" for b in table.budgets)
     lines = [
         m.title,
-        "Published: " + _LABEL.sub(r"\1", m.source) if m.source else "",
+        f"{m.compared_with}: " + _LABEL.sub(r"\1", m.source) if m.source else "",
         f"Budget: {budgets or '—'}; cell = mean accuracy (%) over all test meshes of all folds "
         f"({METRIC_TEXT[table.metric]}), [{100 * table.level:.0f} % bootstrap interval over test meshes]; "
-        f"Δ = reproduced − published",
+        f"Δ = reproduced − {m.compared_with.lower()}",
         f"Overrides: {' '.join(table.overrides)}" if table.overrides else "",
         m.note,
     ]
@@ -301,6 +301,7 @@ def comparison_figure(table: Table):
 
     cols = [c for c in table.columns if c.overrides is not None]
     sets = [r for r in table.rows if r.kind == "set"]
+    ref = table.manifest.compared_with.lower()  # "published", or "reference" for a pinned run's numbers
     colors = {c.key: f"C{i % 10}" for i, c in enumerate(cols)}
     fig = Figure(figsize=(6 + 0.45 * len(sets) * max(1, len(cols)) ** 0.5, 5), layout="constrained")
     ax, bx = fig.subplots(1, 2, width_ratios=[1, 2])
@@ -324,13 +325,13 @@ def comparison_figure(table: Table):
         ax.text(
             0.5,
             0.5,
-            "no cell has both a reproduced\nand a published number",
+            f"no cell has both a reproduced\nand a {ref} number",
             ha="center",
             va="center",
             transform=ax.transAxes,
             fontsize=8,
         )
-    ax.set(xlabel="published accuracy (%)", ylabel="reproduced accuracy (%)", title="reproduced vs published")
+    ax.set(xlabel=f"{ref} accuracy (%)", ylabel="reproduced accuracy (%)", title=f"reproduced vs {ref}")
     ax.title.set_fontsize(9)
     width = 0.8 / max(1, len(cols))
     x = np.arange(len(sets))
@@ -339,18 +340,24 @@ def comparison_figure(table: Table):
         vals = np.array([np.nan if x_.value is None else x_.value for x_ in cells])
         pub = np.array([np.nan if x_.published is None else x_.published for x_ in cells])
         pos = x - 0.4 + width * (i + 0.5)
-        bx.bar(pos, vals, width, color=colors[c.key], label=c.label)
+        done = int(np.isfinite(vals).sum())
+        label = c.label if done == len(sets) else f"{c.label} ({done}/{len(sets)} sets)"  # a partly empty table says so
+        bx.bar(pos, vals, width, color=colors[c.key], label=label)
         bx.plot(pos, pub, "_", color="k", ms=max(4, 40 * width), mew=1.5)
     finite = [v for r in sets for c in r.cells for v in (c.value, c.published) if v is not None]
     if finite:
         bx.set_ylim(max(0, min(finite) - 3), min(100, max(finite) + 1))
     bx.set_xticks(x, [r.label for r in sets], rotation=60, ha="right", fontsize=7)
-    bx.set(ylabel="accuracy (%)", title="per set: bars reproduced, black ticks published")
+    bx.set(ylabel="accuracy (%)", title=f"per set: bars reproduced, black ticks {ref}")
     bx.title.set_fontsize(9)
     if cols:  # below both panels, so that it hides no bar
         handles, labels = bx.get_legend_handles_labels()
         fig.legend(handles, labels, loc="outside lower center", ncols=min(4, len(cols)), fontsize=7)
-    fig.suptitle(f"{table.manifest.name} (budget {', '.join(table.budgets) or '—'})", fontsize=9)
+    p = progress(table)
+    fig.suptitle(
+        f"{table.manifest.name} (budget {', '.join(table.budgets) or '—'}; {p.cells_done} of {p.cells} cells complete)",
+        fontsize=9,
+    )
     return fig
 
 

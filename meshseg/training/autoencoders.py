@@ -79,7 +79,7 @@ def pretrain_autoencoders(train: TrainSet, cfg, ctx: TrainContext) -> tuple[list
             sparsity_target=cfg["sparsity_target"],
             **cfg["optim"],
         )
-        train_stage(module, dataclasses.replace(train, X=X), ctx)
+        train_stage(module, dataclasses.replace(train, X=X), ctx, f"ae{i}")
         X = transform(ae.encoder, X.reshape(len(X), -1), ctx.predict_batch_size, ctx.device)
         autoencoders.append(ae)
     return autoencoders, X
@@ -98,9 +98,9 @@ class AutoencoderSoftmax(Fitter):
         autoencoders, codes = pretrain_autoencoders(train, self.autoencoders, ctx)
         net = StackedAutoencoderClassifier([ae.encoder for ae in autoencoders], codes.shape[1], train.n_classes)
         softmax = StageSegmenter(net.softmax, ctx.epochs, "softmax_", **self.softmax["optim"])
-        train_stage(softmax, dataclasses.replace(train, X=codes), ctx)
+        train_stage(softmax, dataclasses.replace(train, X=codes), ctx, "softmax")
         self.module_ = StageSegmenter(net, ctx.epochs, "", **self.finetune["optim"])
-        train_stage(self.module_, train, ctx)
+        train_stage(self.module_, train, ctx, "finetune")
         self.module_.to(ctx.device)
         self.parts_ = {**{f"ae{i}": ae for i, ae in enumerate(autoencoders, start=1)}, "net": net}
         self.epochs_ = ctx.epochs * (len(autoencoders) + 2)

@@ -21,9 +21,10 @@ class TrainContext:
     predict_batch_size: int = 4096
     progress_bar: bool = False
     logger: object | None = None  # a Lightning logger (the run's MLflow logger), or None
+    checkpoint_dir: str | None = None  # per-epoch checkpoints of each stage here (a killed fold resumes), or none
 
     @classmethod
-    def from_config(cls, budget, trainer, seed: int, logger=None) -> TrainContext:
+    def from_config(cls, budget, trainer, seed: int, logger=None, checkpoint_dir: str | None = None) -> TrainContext:
         """From the run's `budget` and `trainer` config nodes."""
         return cls(
             epochs=int(budget.epochs),
@@ -36,6 +37,7 @@ class TrainContext:
             predict_batch_size=int(trainer.predict_batch_size),
             progress_bar=bool(trainer.progress_bar),
             logger=logger,
+            checkpoint_dir=checkpoint_dir,
         )
 
     @property

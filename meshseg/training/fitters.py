@@ -42,7 +42,7 @@ class Fitter:
     def __getstate__(self) -> dict:
         # a fitter saved with its run (the model/ artifact) keeps its trained parts, not the run's logger
         state = dict(self.__dict__)
-        state["context"] = dataclasses.replace(self.context, logger=None)
+        state["context"] = dataclasses.replace(self.context, logger=None, checkpoint_dir=None)
         return state
 
     def to_cpu(self) -> Fitter:
