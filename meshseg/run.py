@@ -217,13 +217,21 @@ def run_fold(cfg: DictConfig) -> Outcome:
     )
     command = " ".join(["python -m meshseg.run", *(job_overrides() or [])])
     tags.update(system_tags("meshseg.run", command, tags["git_sha"]), **sweep_tag())
-    run_id = None
-    if cfg.tracking.skip_finished:  # claim the config: a concurrent sweep may have taken it since the check
-        run_id, holder = tracker.claim(name, tags, cfg.tracking.heartbeat_s, cfg.tracking.lease_timeout_s)
-        if run_id is None:
-            return Outcome(category, fold.index, _skipped(name, chash, holder), True)
+    with terminate_interrupts():  # from the claim on: SIGTERM ends the run KILLED wherever it lands
+        run_id = None
+        if cfg.tracking.skip_finished:  # claim the config: a concurrent sweep may have taken it since the check
+            run_id, holder = tracker.claim(name, tags, cfg.tracking.heartbeat_s, cfg.tracking.lease_timeout_s)
+            if run_id is None:
+                return Outcome(category, fold.index, _skipped(name, chash, holder), True)
+        return _recorded(cfg, config, tags, tracker, name, run_id, dataset, fold, features, refinement)
 
-    with terminate_interrupts(), tracker.run(name, tags, FoldRecord.params(config), run_id) as run_id:
+
+def _recorded(cfg, config, tags, tracker, name: str, run_id, dataset, fold: Fold, features, refinement) -> Outcome:
+    """The fold's run (`run_id`: claimed, or None for a new one) from start to FINISHED, FAILED or KILLED."""
+    from meshseg.tracking import FoldRecord
+
+    category, chash = tags["category"], tags["config_hash"]
+    with tracker.run(name, tags, FoldRecord.params(config), run_id) as run_id:
         log.info("run: %s (config %s, %d train / %d test meshes)", name, chash, len(fold.train), len(fold.test))
         log.info("run %s: %s", run_id, tracker.run_url(run_id))
         tracker.log_dataset(run_id, f"{dataset.name}/{category}", dataset.data_hash, dataset_source(dataset))

@@ -493,14 +493,18 @@ class Tracker:
                 LEASE_INTERVAL: f"{heartbeat_s:g}",
             }
             mine = self._create(name, {**tags, **lease}).info.run_id
-            others = [r for r in self._config_runs(chash) if r.info.run_id != mine]
-            holders = [r for r in others if _holds(r)]
-            if not holders:
-                for stale in others:
-                    if stale.info.status == "RUNNING":  # its process died mid-run
-                        self.client.set_tag(stale.info.run_id, "superseded_by", mine)
-                        self.client.set_terminated(stale.info.run_id, "KILLED")
-                return mine, None
+            try:
+                others = [r for r in self._config_runs(chash) if r.info.run_id != mine]
+                holders = [r for r in others if _holds(r)]
+                if not holders:
+                    for stale in others:
+                        if stale.info.status == "RUNNING":  # its process died mid-run
+                            self.client.set_tag(stale.info.run_id, "superseded_by", mine)
+                            self.client.set_terminated(stale.info.run_id, "KILLED")
+                    return mine, None
+            except KeyboardInterrupt:  # Ctrl-C or SIGTERM (meshseg.run.terminate_interrupts) mid-claim
+                self.client.set_terminated(mine, "KILLED")
+                raise
             self.client.delete_run(mine)
             time.sleep(random.uniform(0.05, 0.25) * min(attempt + 1, 4))
             # a holder that is still there is not a fellow claimant stepping back: it keeps the config
@@ -523,8 +527,9 @@ class Tracker:
         """Yield a run's id (`run_id`, claimed before, or a new run) and end it FINISHED, FAILED (error
         text tagged) or KILLED. A claimed run's heartbeat is kept fresh meanwhile."""
         run_id = run_id or self._create(name, tags).info.run_id
-        beat = _Heartbeat(self.client, run_id) if run_id and self._leased(run_id) else None
+        beat = None
         try:
+            beat = _Heartbeat(self.client, run_id) if self._leased(run_id) else None
             self.log_params(run_id, params)
             yield run_id
         except KeyboardInterrupt:

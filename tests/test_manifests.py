@@ -141,7 +141,8 @@ def test_schema(path):
     assert path.read_text().startswith("#"), "header comment"
     assert m["name"] == path.stem
     assert isinstance(m["title"], str) and m["title"] and isinstance(m["source"], str) and m["source"]
-    assert set(m) <= {"name", "title", "source", "note", "overrides", "columns", "groups", "total"}
+    assert set(m) <= {"name", "title", "source", "note", "compared_with", "overrides", "columns", "groups", "total"}
+    assert m.get("compared_with", "Published") in ("Published", "Reference")
 
     def check_overrides(ovs, nullable=False):
         if ovs is None:
