@@ -621,16 +621,18 @@ class Tracker:
             if Path(p).is_file():
                 _retry(lambda p=p: self.client.log_artifact(run_id, str(p)), "log files")
 
-    def run_url(self, run_id: str, ui: str | None = None) -> str:
-        """The run's page in the MLflow UI: the tracking server's own, or `ui` (`make ui`'s, for a
-        sqlite store)."""
+    def _ui(self, ui: str | None) -> str:
+        """The MLflow UI's address: the tracking server's own, or `ui` (`make ui`'s, for a sqlite store)."""
         base = self.uri if self.uri.startswith(("http://", "https://")) else (ui or UI_URL)
-        return f"{base.rstrip('/')}/#/experiments/{self.experiment_id}/runs/{run_id}"
+        return f"{base.rstrip('/')}/#/experiments/{self.experiment_id}/runs"
+
+    def run_url(self, run_id: str, ui: str | None = None) -> str:
+        """The run's page in the MLflow UI."""
+        return f"{self._ui(ui)}/{run_id}"
 
     def runs_url(self, ui: str | None = None) -> str:
         """The experiment's runs table (MLflow 3 opens an experiment in its GenAI view otherwise)."""
-        base = self.uri if self.uri.startswith(("http://", "https://")) else (ui or UI_URL)
-        return f"{base.rstrip('/')}/#/experiments/{self.experiment_id}/runs?workflowType=machine_learning"
+        return f"{self._ui(ui)}?workflowType=machine_learning"
 
     def log_pictures(self, run_id: str, meshes, labels, rows: list[dict], n: int) -> None:
         """Artifacts the MLflow UI shows: renders/<mesh>.png (predicted beside ground truth) for up to
