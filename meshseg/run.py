@@ -17,6 +17,7 @@ import shutil
 import signal
 import sys
 import threading
+import time
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -193,6 +194,7 @@ def run_fold(cfg: DictConfig) -> Outcome:
     from meshseg.tracking import FoldRecord, Tracker, fold_identity, system_tags
 
     # resolve: every setting checked, the fold's identity, and whether it has run already
+    t0 = time.perf_counter()
     sweep_progress()
     setup_trainer(cfg.trainer)
     dataset = build_dataset(cfg.dataset)
@@ -223,7 +225,10 @@ def run_fold(cfg: DictConfig) -> Outcome:
             run_id, holder = tracker.claim(name, tags, cfg.tracking.heartbeat_s, cfg.tracking.lease_timeout_s)
             if run_id is None:
                 return Outcome(category, fold.index, _skipped(name, chash, holder), True)
-        return _recorded(cfg, config, tags, tracker, name, run_id, dataset, fold, features, refinement)
+        outcome = _recorded(cfg, config, tags, tracker, name, run_id, dataset, fold, features, refinement)
+    _PACE["jobs"] += 1
+    _PACE["seconds"] += time.perf_counter() - t0
+    return outcome
 
 
 def _recorded(cfg, config, tags, tracker, name: str, run_id, dataset, fold: Fold, features, refinement) -> Outcome:
@@ -374,12 +379,14 @@ def job_files() -> list[Path]:
 
 #: set by meshseg's sweeper for its jobs: how many there are and when the sweep began (time.time())
 SWEEP_JOBS, SWEEP_START = "MESHSEG_SWEEP_JOBS", "MESHSEG_SWEEP_START"
+#: the jobs this process ran to the end (skipped ones not counted) and their seconds: the pace of `job k/N`
+_PACE = {"jobs": 0, "seconds": 0.0}
 
 
 def sweep_progress() -> None:
-    """`job k/N` of a -m sweep, with the time left at the pace of the jobs before it."""
+    """`job k/N` of a -m sweep, with the time left at the pace of the jobs this process ran (none yet: no
+    estimate; a resumed sweep's skipped jobs take seconds and would make it far too short)."""
     import os
-    import time
 
     from hydra.core.hydra_config import HydraConfig
 
@@ -387,7 +394,8 @@ def sweep_progress() -> None:
     if not (n and start and HydraConfig.initialized() and HydraConfig.get().job.get("num") is not None):
         return
     k, n, elapsed = int(HydraConfig.get().job.num) + 1, int(n), time.time() - float(start)
-    left = f", about {elapsed / (k - 1) * (n - k + 1) / 60:.0f} min left" if k > 1 else ""
+    pace = _PACE["seconds"] / _PACE["jobs"] if _PACE["jobs"] else 0.0
+    left = f", about {pace * (n - k + 1) / 60:.0f} min left" if pace else ""
     log.info("job %d/%d (%.0f min into the sweep%s)", k, n, elapsed / 60, left)
 
 
