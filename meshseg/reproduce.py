@@ -3,13 +3,14 @@ write its report.
 
     python -m meshseg.reproduce experiments/table2_psb_5fold.yaml budget=cpu
     python -m meshseg.reproduce experiments/table2_psb_5fold.yaml budget=cpu report.sets=[Teddy] report.dry_run=true
+    python -m meshseg.reproduce experiments/table2_psb_5fold.yaml budget=cpu report.columns=[3B,1B,ToG15]
     python -m meshseg.reproduce experiments/table1_psb_loo.yaml hydra/launcher=joblib   # parallel folds
 
 Every (column, set) with folds missing becomes one `python -m meshseg.run -m` sweep over exactly those
-folds (the same Hydra app, sweeper and launcher config as a hand-typed sweep: launcher overrides pass
-through). Runs that exist are never launched again; an interrupted reproduce, rerun, does the rest.
-Cells no run can fill (a category the dataset lacks) are listed and left alone. Settings: conf/reproduce.yaml
-(conf/report.yaml's, plus report.dry_run).
+folds, column after column (the same Hydra app, sweeper and launcher config as a hand-typed sweep:
+launcher overrides pass through). Runs that exist are never launched again; an interrupted reproduce,
+rerun, does the rest. Cells no run can fill (a category the dataset lacks) are listed and left alone.
+Settings: conf/reproduce.yaml (conf/report.yaml's, plus report.dry_run).
 """
 
 from __future__ import annotations
@@ -50,12 +51,14 @@ class MissingCell:
 
 
 def missing_cells(table: Table) -> list[MissingCell]:
-    """Every incomplete (column, set) of the table, in table order."""
+    """Every incomplete (column, set) of the table, column by column (each column's sets in table order),
+    so the columns complete one after the other in the order the manifest or `report.columns` gives."""
+    sets = [row for row in table.rows if row.kind == "set"]
     return [
         MissingCell(row.label, c.column.key, tuple(c.overrides), c.category, tuple(c.missing))
-        for row in table.rows
-        if row.kind == "set"
-        for c in row.cells
+        for j in range(len(sets[0].cells) if sets else 0)
+        for row in sets
+        for c in [row.cells[j]]
         if c.status == "incomplete"
     ]
 

@@ -24,9 +24,9 @@ from meshseg.report import ManifestError, collect, load_manifest, report
 from meshseg.report.app import main as report_main
 from meshseg.report.config import compose_config, run_overrides, split_argv
 from meshseg.report.manifest import Column
-from meshseg.report.table import Cell, Row, Table, _averages, bootstrap_ci, cell_rng, refinement_gain
+from meshseg.report.table import Cell, Row, Table, _averages, bootstrap_ci, cell_rng, progress, refinement_gain
 from meshseg.report.write import FILES
-from meshseg.reproduce import MissingCell, missing_cells
+from meshseg.reproduce import MissingCell, missing_cells, reproduce
 from meshseg.reproduce import main as reproduce_main
 
 SYNTH = REPO / "experiments/synthetic.yaml"
@@ -227,6 +227,8 @@ def test_run_overrides_reach_the_runs_verbatim():
         (["report.level=95"], "report.level=95 must be a number between 0 and 1"),
         (["report.sets=Teddy"], "report.sets=Teddy must be a list"),
         (["report.paired=[cnn1d]"], r"report.paired=\['cnn1d'\] must be two column keys"),
+        (["report.columns=3B"], "report.columns=3B must be a list of column keys"),
+        (["report.columns=[]"], r"report.columns=\[\] must be a list of column keys"),
     ],
 )
 def test_bad_report_settings_are_refused(args, problem):
@@ -393,6 +395,20 @@ def test_report_writes_every_format_from_the_runs_and_logs_itself(smoke_store, t
     assert logged.data.metrics["cells_ok"] == 12
 
 
+def test_only_columns_keeps_those_columns_in_that_order_with_their_published_numbers():
+    m = load_manifest(SYNTH)
+    assert [c.key for c in m.columns] == ["3B", "1B", "rf"]
+    picked = m.only_columns(["rf", "3B"])
+    assert [c.key for c in picked.columns] == ["rf", "3B"]
+    for g, h in zip(m.groups, picked.groups):
+        assert h.published_average == (g.published_average[2], g.published_average[0])
+        assert [s.published for s in h.sets] == [(s.published[2], s.published[0]) for s in g.sets]
+    assert picked.published_total == (m.published_total[2], m.published_total[0])
+    for bad in (["3B", "cnn9"], ["3B", "3B"]):
+        with pytest.raises(ConfigError, match=r"give distinct column keys of synthetic: 3B, 1B, rf$"):
+            m.only_columns(bad)
+
+
 def test_a_cells_interval_does_not_depend_on_the_other_rows(smoke_store, cache_dir, monkeypatch):
     """Cup's intervals are the same in the full table and with report.sets=[Cup]; another seed moves them."""
     for k, v in smoke_env(smoke_store.parent, cache_dir).items():
@@ -547,6 +563,14 @@ def test_an_empty_table_2_says_what_is_missing_and_the_command_runs_exactly_that
     assert (
         "[112/112] would run: python -m meshseg.run -m" in dry.stderr and "category=Vase fold=0,1,2,3,4" in dry.stderr
     )
+    # report.columns: those columns only, run one after the other in the order given
+    picked = reproduce(path, ["report.columns=[ToG15,3B]", "report.dry_run=true", "report.results=null"])
+    order = [(c.column, c.row) for c in picked.launched]
+    assert len(order) == 32 and order[0] == ("ToG15", "Airplane") and order[15] == ("ToG15", "Vase")
+    assert order[16] == ("3B", "Airplane") and order[-1] == ("3B", "Vase")
+    assert [c.key for c in picked.table.columns] == ["ToG15", "3B"]
+    assert picked.table.rows[-1].cells[0].published == 92.04  # ToG15's published average moved with it
+    assert "report.columns=[ToG15,3B]" in progress(picked.table).command
 
 
 def test_headers_carry_no_latex():

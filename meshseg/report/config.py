@@ -157,6 +157,10 @@ def check_config(cfg: DictConfig) -> None:
         raise ConfigError(f"report.seed={s.seed} must be an integer >= 0")
     if s.sets is not None and not isinstance(s.sets, ListConfig):
         raise ConfigError(f"report.sets={s.sets} must be a list of set or category names, e.g. report.sets=[Teddy]")
+    if s.get("columns") is not None and not (
+        isinstance(s.columns, ListConfig) and len(s.columns) and all(isinstance(k, str) for k in s.columns)
+    ):
+        raise ConfigError(f"report.columns={s.columns} must be a list of column keys, e.g. report.columns=[3B,ToG15]")
     if s.paired is not None and not (
         isinstance(s.paired, ListConfig) and len(s.paired) == 2 and all(isinstance(k, str) for k in s.paired)
     ):

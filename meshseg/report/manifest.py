@@ -3,7 +3,7 @@ and the published numbers beside them. The schema is in experiments/README.md.""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import yaml
@@ -69,6 +69,30 @@ class Manifest:
     path: Path
     #: what the `published` numbers are: "Published" (the paper's) or e.g. "Reference" (a pinned run's)
     compared_with: str = "Published"
+
+    def only_columns(self, keys) -> Manifest:
+        """The manifest with only the columns `keys` (in that order), their published numbers with them."""
+        index = {c.key: j for j, c in enumerate(self.columns)}
+        unknown = [k for k in keys if k not in index]
+        if unknown or len(set(keys)) != len(keys) or not keys:
+            raise errors.ConfigError(
+                f"report.columns={list(keys)}: give distinct column keys of {self.name}: {', '.join(index)}"
+            )
+        pick = [index[k] for k in keys]
+
+        def sliced(values: tuple) -> tuple:
+            return tuple(values[j] for j in pick)
+
+        groups = tuple(
+            replace(
+                g,
+                sets=tuple(replace(s, published=sliced(s.published)) for s in g.sets),
+                published_average=sliced(g.published_average),
+            )
+            for g in self.groups
+        )
+        columns = tuple(self.columns[j] for j in pick)
+        return replace(self, columns=columns, groups=groups, published_total=sliced(self.published_total))
 
     def cell_overrides(self, group: Group, column: Column) -> list[str]:
         """Run overrides of one (group, column): the manifest's, then the group's, then the column's."""

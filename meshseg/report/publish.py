@@ -55,6 +55,8 @@ def build(manifest: Manifest, cfg: DictConfig) -> Table:
     """The manifest's table from the runs, with the app config's run overrides and `report.*` settings."""
     s = cfg.report
     import_results(manifest, cfg)
+    if s.get("columns") is not None:
+        manifest = manifest.only_columns([str(k) for k in s.columns])
     sets = None if s.sets is None else list(s.sets)
     table = collect(
         manifest,
@@ -67,6 +69,8 @@ def build(manifest: Manifest, cfg: DictConfig) -> Table:
         paired=None if s.get("paired") is None else tuple(s.paired),
     )
     # the settings that decide which runs a table lacks go into its `meshseg.reproduce` command
+    if s.get("columns") is not None:
+        table.settings += (f"report.columns=[{','.join(c.key for c in manifest.columns)}]",)
     if s.get("results", "results") != "results":
         table.settings += (f"report.results={'null' if s.results is None else s.results}",)
     return table
