@@ -37,8 +37,10 @@ format: install
 	$(BIN)/ruff check --fix .
 	$(BIN)/ruff format .
 
+# Two pytest-xdist workers (TEST_WORKERS=0: one process); they build the tests' smoke store once, together.
+TEST_WORKERS ?= 2
 test: lint
-	$(BIN)/python -m pytest --durations=10
+	$(BIN)/python -m pytest -n $(TEST_WORKERS) --durations=10
 
 # A one-node SLURM cluster and an MLflow server on PostgreSQL, started here as root (scripts/local_cluster.sh,
 # apt-installing what is missing), a smoke sweep through hydra/launcher=slurm, and everything stopped again.

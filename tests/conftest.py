@@ -64,11 +64,29 @@ def smoke_env(root: Path, cache_dir: Path) -> dict:
 @pytest.fixture(scope="session")
 def smoke_store(tmp_path_factory, cache_dir) -> Path:
     """Every run of experiments/synthetic.yaml (3 columns x 3 sets x 2 folds = 18) at budget=smoke.
-    Returns the store's folder (mlflow.db, artifacts/); tests that change it work on a copy."""
+    Returns the store's folder (mlflow.db, artifacts/); tests that change it work on a copy. pytest-xdist's
+    workers share one: the first to need it builds it while the others wait."""
+    import shutil
+
+    from filelock import FileLock
+
+    shared = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        shared = shared.parent  # the workers' common folder
+    root = shared / "smoke"
+    with FileLock(str(shared / "smoke.lock")):
+        if not (root / "built").exists():
+            shutil.rmtree(root, ignore_errors=True)  # a build that failed half-way is not reused
+            _build_smoke_store(root, cache_dir)
+            (root / "built").touch()
+    return root / "mlruns"
+
+
+def _build_smoke_store(root: Path, cache_dir: Path) -> None:
     import subprocess
     import sys
 
-    root = tmp_path_factory.mktemp("smoke")
+    root.mkdir(parents=True)
     env = smoke_env(root, cache_dir)
     # the two sweeps side by side (one store, as concurrent sweeps share one): their runs are mostly
     # single-threaded Python, so two cores make the store in about half the time
@@ -86,4 +104,3 @@ def smoke_store(tmp_path_factory, cache_dir) -> Path:
     for p in sweeps:
         _, err = p.communicate(timeout=900)
         assert p.returncode == 0, err[-3000:]
-    return root / "mlruns"
