@@ -58,8 +58,7 @@ def missing_cells(table: Table) -> list[MissingCell]:
         MissingCell(row.label, c.column.key, tuple(c.overrides), c.category, tuple(c.missing))
         for j in range(len(sets[0].cells) if sets else 0)
         for row in sets
-        for c in [row.cells[j]]
-        if c.status == "incomplete"
+        if (c := row.cells[j]).status == "incomplete"
     ]
 
 
