@@ -161,6 +161,22 @@ def test_missing_cells_are_structured_and_make_their_sweeps():
     assert m.sweep() == ["dataset=psb", "model=cnn1d", "budget=cpu", "category=Teddy", "fold=1,3"]
 
 
+def test_progress_counts_the_cells_no_run_can_fill_apart():
+    """Table 4 has COSEG cells whose data is not here: 'complete' counts the cells runs can fill, and says
+    how many more are unavailable."""
+    ok = Cell(COL, None, accs=np.array([90.0]), folds=1)
+    gone = Cell(COL, None, problem="dataset coseg has no category 'Vases'")
+    gap = Cell(COL, None, folds=5, missing=(2,), seconds=(60.0, 80.0, 100.0, 120.0))
+    rows = [Row("Teddy", "set", "PSB", [ok]), Row("Vases", "set", "COSEG", [gone])]
+    done = progress(Table(load_manifest(SYNTH), rows, (), "acc", 0.95))
+    assert (done.cells, done.unavailable) == (1, 1)
+    assert done.text() == "All 1 cells complete (1 more unavailable: no data here to run them)."
+    rows.append(Row("Cup", "set", "PSB", [gap]))
+    line = progress(Table(load_manifest(SYNTH), rows, (), "acc", 0.95)).text()
+    assert line.startswith("1 of 2 cells complete (1 more unavailable: no data here to run them); 1 fold runs missing.")
+    assert "about 90 s on one process" in line  # the one missing fold at the column's median fold time
+
+
 # --- manifests and settings -----------------------------------------------------------------------
 
 

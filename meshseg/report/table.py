@@ -145,11 +145,13 @@ class Progress:
     seconds: float  # the missing runs of the timed columns, at their median fold time
     fold_seconds: dict[str, float]  # median wall time of a fold, by the label of a column that lacks runs
     untimed: tuple[str, ...]  # labels of the columns lacking runs that have no timed fold yet
+    unavailable: int = 0  # set cells no run can fill here (their dataset or category is not at hand)
 
     def text(self) -> str:
+        aside = f" ({self.unavailable} more unavailable: no data here to run them)" if self.unavailable else ""
         if not self.runs_missing:
-            return f"All {self.cells} cells complete."
-        line = f"{self.cells_done} of {self.cells} cells complete; {self.runs_missing} fold runs missing. "
+            return f"All {self.cells} cells complete{aside}."
+        line = f"{self.cells_done} of {self.cells} cells complete{aside}; {self.runs_missing} fold runs missing. "
         line += f"Next: `{self.command}`"
         if self.fold_seconds:
             per = ", ".join(f"{k} {v:.0f} s" for k, v in self.fold_seconds.items())
@@ -171,8 +173,8 @@ def progress(table: Table) -> Progress:
     """The table's Progress (set cells that runs can fill; unavailable ones left out)."""
     import shlex
 
-    cells = [c for r in table.rows if r.kind == "set" for c in r.cells if c.status in ("ok", "incomplete")]
-    cells = [c for c in cells if c.column.predictions is None]
+    run_cells = [c for r in table.rows if r.kind == "set" for c in r.cells if c.column.predictions is None]
+    cells = [c for c in run_cells if c.status in ("ok", "incomplete")]
     times: dict[str, list[float]] = {}
     for c in cells:
         times.setdefault(c.column.label, []).extend(c.seconds)
@@ -195,6 +197,7 @@ def progress(table: Table) -> Progress:
         seconds=sum(len(c.missing) * medians[c.column.label] for c in todo if c.column.label in medians),
         fold_seconds=medians,
         untimed=tuple(k for k in lacking if k not in medians),
+        unavailable=sum(c.status == "unavailable" for c in run_cells),
     )
 
 
