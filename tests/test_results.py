@@ -84,3 +84,18 @@ def test_a_file_that_is_not_a_record_is_named(tmp_path):
     (tmp_path / "x/bad.json").write_text("{not json")
     with pytest.raises(ValueError, match=r"x/bad.json: not a results record"):
         load_records(tmp_path)
+
+
+def test_every_shipped_record_matches_todays_code():
+    """results/ ships with the code: a change to run identity must re-run its records (docs/changelog.md),
+    never leave them to be refused by the next import. Each record's config hash, recomputed today."""
+    from hydra import initialize_config_dir
+
+    from meshseg import CONF_DIR
+    from meshseg.results import current_hash
+
+    records = load_records(REPO / "results")
+    assert len(records) >= 38  # Table 4's PSB block at least
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        stale = [str(p.relative_to(REPO)) for p, r in records if current_hash(r) != r["config_hash"]]
+    assert stale == []
