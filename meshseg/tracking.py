@@ -324,9 +324,10 @@ def _file_lock(path: Path) -> Iterator[None]:
             fcntl.flock(fh, fcntl.LOCK_UN)
 
 
-def _retry(fn, what: str, attempts: int = 8):
-    """sqlite under several writer processes can report 'database is locked': back off and retry. A
-    tracking server that stays unreachable through MLflow's own HTTP retries is one TrackingError."""
+def _retry(fn, what: str, attempts: int = 8, transient: tuple[str, ...] = ("locked",)):
+    """sqlite under several writer processes can report 'database is locked': back off and retry (any
+    error whose text holds one of `transient`, case-blind). A tracking server that stays unreachable
+    through MLflow's own HTTP retries is one TrackingError."""
     from mlflow.exceptions import MlflowException
 
     for i in range(attempts):
@@ -335,7 +336,7 @@ def _retry(fn, what: str, attempts: int = 8):
         except MlflowException as e:
             if gone := _server_gone(what, e):
                 raise gone from None
-            if "locked" not in str(e) or i == attempts - 1:
+            if not any(t in str(e).lower() for t in transient) or i == attempts - 1:
                 raise
             log.warning("%s: store busy, retrying", what)
             time.sleep(0.2 * 2**i)
@@ -613,7 +614,9 @@ class Tracker:
 
         data = Dataset(name=name, digest=digest[:36], source_type="local", source=json.dumps({"uri": source}))
         inp = DatasetInput(data, [InputTag("mlflow.data.context", "training")])
-        _retry(lambda: self.client.log_inputs(run_id, [inp]), "log dataset")
+        # MLflow's store looks a dataset up, then inserts it: two folds of one category that log it at
+        # once race, and the loser gets a unique-key violation. Retried, it finds the winner's row.
+        _retry(lambda: self.client.log_inputs(run_id, [inp]), "log dataset", transient=("locked", "unique"))
 
     def log_files(self, run_id: str, paths) -> None:
         """Files as top-level artifacts (the Hydra job's overrides and log); missing ones are skipped."""

@@ -235,6 +235,36 @@ def test_a_server_that_stops_answering_is_one_tracking_error(monkeypatch):
         _retry(lambda: client.get_experiment_by_name("meshseg"), "log metrics")
 
 
+def test_two_folds_logging_one_dataset_at_once_both_get_it(tmp_path, monkeypatch):
+    """A tracking server looks a dataset up, then inserts it: when two folds of one category log it at the
+    same moment, the loser's insert is a unique-key violation (seen on PostgreSQL in CI). Retried, its
+    lookup finds the winner's row. The same error elsewhere is not swallowed."""
+    from mlflow.exceptions import RestException
+
+    dup = {"error_code": "BAD_REQUEST", "message": 'duplicate key value violates unique constraint "dataset_pk"'}
+    tracker = _tracker(tmp_path)
+    run_id, other = (tracker.client.create_run(tracker.experiment_id).info.run_id for _ in range(2))
+    real, calls = tracker.client.log_inputs, []
+
+    def racing(run_id, inputs):
+        calls.append(run_id)
+        if len(calls) == 1:
+            real(other, inputs)  # the other fold's insert lands first ...
+            raise RestException(dup)  # ... and this one's collides with it
+        return real(run_id, inputs)
+
+    monkeypatch.setattr(tracker.client, "log_inputs", racing)
+    tracker.log_dataset(run_id, "psb/Cup", "835d58916a158212", "LabeledDB_new.tar.xz")
+    assert len(calls) == 2
+    (got,) = tracker.client.get_run(run_id).inputs.dataset_inputs
+    assert (got.dataset.name, got.dataset.digest) == ("psb/Cup", "835d58916a158212")
+
+    from meshseg.tracking import _retry
+
+    with pytest.raises(RestException, match="unique constraint"):
+        _retry(lambda: (_ for _ in ()).throw(RestException(dup)), "log metrics")
+
+
 def test_a_sqlite_store_keeps_its_artifacts_beside_its_database(tmp_path):
     """tracking.uri=sqlite:///X/mlflow.db is all of folder X: runs' and reports' artifacts go to X/artifacts,
     never to ./mlruns of the current folder (an explicit tracking.artifact_dir still wins)."""
