@@ -338,7 +338,7 @@ def _retry(fn, what: str, attempts: int = 8, transient: tuple[str, ...] = ("lock
                 raise gone from None
             if not any(t in str(e).lower() for t in transient) or i == attempts - 1:
                 raise
-            log.warning("%s: store busy, retrying", what)
+            log.warning("%s: store busy or a concurrent write won, retrying", what)
             time.sleep(0.2 * 2**i)
 
 

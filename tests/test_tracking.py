@@ -261,8 +261,11 @@ def test_two_folds_logging_one_dataset_at_once_both_get_it(tmp_path, monkeypatch
 
     from meshseg.tracking import _retry
 
+    def collide():
+        raise RestException(dup)
+
     with pytest.raises(RestException, match="unique constraint"):
-        _retry(lambda: (_ for _ in ()).throw(RestException(dup)), "log metrics")
+        _retry(collide, "log metrics")
 
 
 def test_a_sqlite_store_keeps_its_artifacts_beside_its_database(tmp_path):
