@@ -325,21 +325,25 @@ def checkpoint_dir(cfg: DictConfig, chash: str) -> Path | None:
 
 @contextmanager
 def terminate_interrupts():
-    """While a fold runs, SIGTERM (`scancel`, `kill`, a job's time limit) interrupts it as Ctrl-C does, so
-    its run ends KILLED instead of staying RUNNING: submitit's jobs ignore SIGTERM, and SLURM follows it
-    with SIGKILL. Signals reach the main thread only; elsewhere this does nothing."""
+    """While a fold runs, SIGTERM (`scancel`, `kill`, a job's time limit) and Ctrl-C interrupt it, so its run
+    ends KILLED instead of staying RUNNING: submitit's jobs ignore SIGTERM, and SLURM follows it with
+    SIGKILL. An interrupt waits for the store call under way, if any (meshseg.tracking.interrupt). Signals
+    reach the main thread only; elsewhere this does nothing."""
+    from meshseg.tracking import interrupt
+
     if threading.current_thread() is not threading.main_thread():
         yield
         return
 
-    def interrupt(signum, frame):
-        raise KeyboardInterrupt(f"{signal.Signals(signum).name} received")
+    def handler(signum, frame):
+        interrupt(f"{signal.Signals(signum).name} received")
 
-    previous = signal.signal(signal.SIGTERM, interrupt)
+    previous = {s: signal.signal(s, handler) for s in (signal.SIGTERM, signal.SIGINT)}
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for s, h in previous.items():
+            signal.signal(s, h)
 
 
 def dataset_source(dataset: MeshDataset) -> str:

@@ -19,6 +19,7 @@ import logging
 import random
 import subprocess
 import tempfile
+import threading
 import time
 import traceback
 from collections.abc import Iterator
@@ -324,6 +325,54 @@ def _file_lock(path: Path) -> Iterator[None]:
             fcntl.flock(fh, fcntl.LOCK_UN)
 
 
+#: the main thread's store call under way (its depth) and an interrupt that arrived during it
+_IN_CALL = {"depth": 0, "pending": None}
+
+
+def interrupt(reason: str) -> None:
+    """Stop the fold, from a signal handler (meshseg.run.terminate_interrupts): KeyboardInterrupt(reason)
+    now or, while a store call is under way on the main thread, the moment it returns. Raised inside the
+    call, it can leave the call's sqlite write transaction open in this process, and the run's own end
+    (KILLED) then waits on that lock until it fails ('database is locked')."""
+    if _IN_CALL["depth"]:
+        _IN_CALL["pending"] = reason
+    else:
+        raise KeyboardInterrupt(reason)
+
+
+@contextmanager
+def _whole_call():
+    if threading.current_thread() is not threading.main_thread():  # signals interrupt the main thread only
+        yield
+        return
+    _IN_CALL["depth"] += 1
+    try:
+        yield
+    finally:
+        _IN_CALL["depth"] -= 1
+        if _IN_CALL["depth"] == 0 and _IN_CALL["pending"]:
+            reason, _IN_CALL["pending"] = _IN_CALL["pending"], None
+            raise KeyboardInterrupt(reason)
+
+
+class _WholeCalls:
+    """An MlflowClient whose every call runs to its end before an interrupt (`interrupt`) takes effect."""
+
+    def __init__(self, client):
+        self._client = client
+
+    def __getattr__(self, name: str):
+        attr = getattr(self._client, name)
+        if not callable(attr):
+            return attr
+
+        def call(*args, **kwargs):
+            with _whole_call():
+                return attr(*args, **kwargs)
+
+        return call
+
+
 def _retry(fn, what: str, attempts: int = 8, transient: tuple[str, ...] = ("locked",)):
     """sqlite under several writer processes can report 'database is locked': back off and retry (any
     error whose text holds one of `transient`, case-blind). A tracking server that stays unreachable
@@ -430,10 +479,10 @@ class Tracker:
             # MLflow creates and migrates a new sqlite schema on first use; two processes doing that at
             # once collide ("duplicate column name"), so the first use happens under a lock beside the file.
             with _file_lock(Path(self.uri[len("sqlite:///") :] + ".lock")):
-                self.client = MlflowClient(tracking_uri=self.uri)
+                self.client = _WholeCalls(MlflowClient(tracking_uri=self.uri))
                 self.experiment_id = self._experiment(experiment, artifact_dir)
         else:
-            self.client = MlflowClient(tracking_uri=self.uri)
+            self.client = _WholeCalls(MlflowClient(tracking_uri=self.uri))
             self.experiment_id = self._experiment(experiment, artifact_dir)
 
     def _experiment(self, name: str, artifact_dir: str | None) -> str:
@@ -667,6 +716,10 @@ class Tracker:
         from pytorch_lightning.loggers import MLFlowLogger
 
         class _FoldLogger(MLFlowLogger):
+            def __init__(self, **kwargs):
+                super().__init__(**kwargs)
+                self._mlflow_client = _WholeCalls(self._mlflow_client)  # epoch curves are store writes too
+
             def finalize(self, status: str = "success") -> None:
                 pass  # the run ends after evaluation, in Tracker.run
 

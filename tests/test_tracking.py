@@ -2,6 +2,7 @@
 keep two sweeps from running one fold twice, store checks at start, and run identity (fold ids)."""
 
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -138,6 +139,64 @@ def test_sigterm_mid_run_ends_the_run_killed(store):
     (killed,) = runs(store)
     assert killed.info.status == "KILLED" and "test/acc" not in killed.data.metrics, out[-2000:]
     assert "SIGTERM received" in out
+
+
+def test_an_interrupt_waits_for_the_store_call_under_way(tmp_path, monkeypatch):
+    """SIGTERM landing inside a store write: raised there, it left sqlite's write transaction open in this
+    process, and ending the run KILLED then failed on 'database is locked'. It must come after the call."""
+    from meshseg.run import terminate_interrupts
+
+    t = _tracker(tmp_path)
+    run_id = t._create("fold 0", {}).info.run_id
+    set_tag, steps = t.client._client.set_tag, []
+
+    def set_tag_hit_by_sigterm(*args):
+        os.kill(os.getpid(), signal.SIGTERM)  # its handler runs on this thread at the next bytecode
+        steps.append("the write goes on")
+        return set_tag(*args)
+
+    monkeypatch.setattr(t.client._client, "set_tag", set_tag_hit_by_sigterm)
+    with terminate_interrupts(), pytest.raises(KeyboardInterrupt, match="SIGTERM received"):
+        t.client.set_tag(run_id, "k", "v")
+    assert steps == ["the write goes on"] and t.client.get_run(run_id).data.tags["k"] == "v"
+    t0 = time.perf_counter()
+    t._end(None, run_id, "KILLED")  # the store is free at once
+    assert t.client.get_run(run_id).info.status == "KILLED" and time.perf_counter() - t0 < 5
+    # outside a store call the interrupt is immediate
+    with terminate_interrupts(), pytest.raises(KeyboardInterrupt, match="SIGTERM received"):
+        os.kill(os.getpid(), signal.SIGTERM)
+        steps.append("not reached")
+    assert steps == ["the write goes on"]
+
+
+def test_an_interrupt_during_training_reaches_the_fold_as_an_interrupt(tmp_path):
+    """Lightning answers Ctrl-C or SIGTERM in fit() with sys.exit(1), which would end the run FAILED."""
+    import numpy as np
+    import pytorch_lightning as pl
+    import torch
+
+    from meshseg.training.context import TrainContext
+    from meshseg.training.data import Standardiser, TrainSet
+    from meshseg.training.loop import train_stage
+
+    class InterruptedAtStep3(pl.LightningModule):
+        def __init__(self):
+            super().__init__()
+            self.layer = torch.nn.Linear(4, 2)
+
+        def training_step(self, batch, i):
+            if i == 3:
+                raise KeyboardInterrupt("SIGTERM received")
+            x, y = batch
+            return torch.nn.functional.cross_entropy(self.layer(x[:, 0]), y)
+
+        def configure_optimizers(self):
+            return torch.optim.SGD(self.parameters(), lr=0.1)
+
+    X = np.random.default_rng(0).normal(size=(64, 1, 4)).astype(np.float32)
+    data = TrainSet(X, np.arange(64) % 2, Standardiser(X), 64, 2)
+    with pytest.raises(KeyboardInterrupt, match="SIGTERM received"):
+        train_stage(InterruptedAtStep3(), data, TrainContext(epochs=2, batch_size=8))
 
 
 def test_two_sweeps_of_one_study_at_once_train_each_fold_once(store):

@@ -78,7 +78,14 @@ def train_stage(module: pl.LightningModule, data: TrainSet, ctx: TrainContext, s
         warnings.filterwarnings("ignore", message=".*LeafSpec.*is deprecated")  # Lightning 2.6 on torch 2.13
         # fit() asks whether SLURM launched it (for its own requeue checkpoints) even with LightningEnvironment
         warnings.filterwarnings("ignore", message=".*The `srun` command is available on your system")
-        trainer.fit(module, datamodule=FoldDataModule(data, ctx.batch_size, ctx.seed), ckpt_path=last)
+        try:
+            trainer.fit(module, datamodule=FoldDataModule(data, ctx.batch_size, ctx.seed), ckpt_path=last)
+        except SystemExit as e:
+            # Lightning answers an interrupt (Ctrl-C, or SIGTERM through meshseg.run) with its own shutdown
+            # and sys.exit(1); the fold must see the interrupt itself, so that its run ends KILLED, not FAILED
+            if isinstance(e.__context__, KeyboardInterrupt):
+                raise e.__context__ from None
+            raise
 
 
 @torch.no_grad()
