@@ -97,3 +97,29 @@ def test_paired_differences_are_per_mesh(tiny, monkeypatch):
     assert avg.value == pytest.approx(s.value)
     with pytest.raises(ValueError, match=r"report.paired: 'C' is no column of tiny"):
         collect(manifest(tiny, cols), [f"paths.mlflow_dir={tiny / 'mlruns'}"], paired=("A", "C"))
+
+
+def test_a_column_still_running_is_compared_on_its_finished_folds(tiny, monkeypatch):
+    """Table 1's 1D CNN column fills over weeks: each set is compared on the meshes its finished folds
+    tested, marked partial, and no average is claimed until every set is complete."""
+    from meshseg.report.table import compare
+
+    monkeypatch.setenv("MESHSEG_CACHE_DIR", str(tiny / "cache"))
+    other = tiny / "pred2"
+    other.mkdir()
+    (other / "1.lab").write_text("head\n1\nbody\n2\n")  # all right: 100 (B scores 80)
+    (other / "2.lab").write_text("head\n1 2 3\n")  # 2/3, as B
+    cols = [
+        {"key": "A", "label": "A", "predictions": {"path": str(other), "format": "psb_labels"}},
+        {"key": "B", "label": "B", "predictions": {"path": str(tiny / "pred"), "format": "psb_labels"}},
+    ]
+    table = collect(manifest(tiny, cols), [f"paths.mlflow_dir={tiny / 'mlruns'}"], n_boot=200)
+    a = table.rows[0].cells[0]
+    a.missing, a.scored = (1,), a.scored[:1]  # as a run column with the fold of mesh 2 still to run
+    (s, avg) = compare(table, "A", "B", n_boot=200).rows
+    assert s.n_meshes == 1 and s.value == pytest.approx(20.0) and s.ci == pytest.approx((20.0, 20.0))
+    assert s.partial == "A 1 of 2 folds"
+    assert avg.value is None and avg.why == "not every set compared"
+    a.scored = ()  # nothing finished yet: nothing to compare
+    (s, _) = compare(table, "A", "B", n_boot=200).rows
+    assert s.value is None and s.why == "A: incomplete, B: ok"

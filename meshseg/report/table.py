@@ -36,6 +36,7 @@ class Cell:
     column: Column
     published: float | None
     accs: np.ndarray | None = None  # per test mesh, %, over all folds (a complete set cell)
+    scored: tuple[tuple[str, float], ...] = ()  # (test mesh, %) of every finished fold, complete or not
     gains: np.ndarray | None = None  # per test mesh, refined - raw accuracy in points (run columns only)
     meshes: tuple[str, ...] = ()  # the test mesh of each of `accs`
     folds: int = 0  # folds the split has
@@ -100,6 +101,7 @@ class PairedRow:
     value: float | None = None  # mean per-mesh difference a - b (averages: the mean over sets), points
     ci: tuple[float, float] | None = None
     why: str = ""  # why there is no value
+    partial: str = ""  # a set compared on the finished folds of a column still running: which, how many
 
 
 @dataclass
@@ -300,8 +302,9 @@ def _fill(cell: Cell, category: str, dataset, split, resolved: dict, runs: _Runs
     cell.folds, cell.missing = len(folds), tuple(missing)
     cell.config_hashes = tuple(r.data.tags["config_hash"] for r in found)
     cell.seconds = tuple((r.info.end_time - r.info.start_time) / 1000 for r in found if r.info.end_time)
+    scored = [pair for r in found for pair in runs.mesh_accuracies(r)]
+    cell.scored = tuple((m, float(a[metric])) for m, a in scored)  # a paired comparison uses what there is
     if not missing:
-        scored = [pair for r in found for pair in runs.mesh_accuracies(r)]
         cell.meshes, cell.accs = tuple(m for m, _ in scored), np.array([a[metric] for _, a in scored])
         cell.gains = np.array([a["acc"] - a["acc_raw"] for _, a in scored])
 
@@ -319,6 +322,7 @@ def _fill_predictions(cell: Cell, category: str, dataset, split, spec, cache_dir
     cell.folds = len(folds)
     scored = score(spec, dataset, cell.category, [m for f in folds for m in f.test], cache_dir)
     cell.meshes, cell.accs = tuple(m for m, _ in scored), np.array([a for _, a in scored])
+    cell.scored = tuple((m, float(a)) for m, a in scored)
 
 
 def collect(
@@ -443,20 +447,24 @@ def collect(
 def compare(table: Table, a: str, b: str, *, n_boot: int = 2000, seed: int = 0) -> Paired:
     """Column `a` minus column `b` on the same test meshes (matched by mesh id): per set the mean difference
     with a paired bootstrap interval (the meshes resampled, each keeping both its accuracies), per average
-    row the mean over its sets (each set resampled on its own)."""
+    row the mean over its sets (each set resampled on its own). A set whose cell is still incomplete is
+    compared on the meshes of its finished folds, marked partial; an average needs every set complete."""
     keys = [c.key for c in table.columns]
     for key in (a, b):
         if key not in keys:
             raise ConfigError(f"report.paired: {key!r} is no column of {table.manifest.name}; its columns are {keys}")
     ia, ib = keys.index(a), keys.index(b)
 
-    def differences(row: Row) -> np.ndarray | str:
+    def differences(row: Row) -> tuple[np.ndarray, str] | str:
         ca, cb = row.cells[ia], row.cells[ib]
-        if ca.status != "ok" or cb.status != "ok":
+        if "unavailable" in (ca.status, cb.status) or not (ca.scored and cb.scored):
             return f"{a}: {ca.status}, {b}: {cb.status}"
-        acc_b = dict(zip(cb.meshes, cb.accs))
-        d = np.array([x - acc_b[m] for m, x in zip(ca.meshes, ca.accs) if m in acc_b])
-        return d if len(d) else "no test mesh in common"
+        acc_b = dict(cb.scored)
+        d = np.array([x - acc_b[m] for m, x in ca.scored if m in acc_b])
+        partial = ", ".join(
+            f"{c.column.key} {c.folds - len(c.missing)} of {c.folds} folds" for c in (ca, cb) if c.missing
+        )
+        return (d, partial) if len(d) else "no test mesh in common"
 
     rows = _paired_rows(table, differences, ("paired", a, b), n_boot, seed)
     return Paired(table.columns[ia], table.columns[ib], rows)
@@ -477,8 +485,9 @@ def refinement_gain(table: Table, key: str, *, n_boot: int = 2000, seed: int = 0
 
 
 def _paired_rows(table: Table, differences, ident: tuple[str, ...], n_boot: int, seed: int) -> list[PairedRow]:
-    """One PairedRow per table row from `differences(set row)` (per-mesh differences, or why there are none);
-    an average row is the mean over its sets, defined when every one of them has differences."""
+    """One PairedRow per table row from `differences(set row)` (per-mesh differences, with what makes them
+    partial, or why there are none); an average row is the mean over its sets, defined when every one of
+    them has differences in full."""
     out, diffs = [], {}
     for row in table.rows:
         rng = cell_rng(seed, *ident[:1], row.kind, row.group, row.label, *ident[1:])
@@ -487,10 +496,11 @@ def _paired_rows(table: Table, differences, ident: tuple[str, ...], n_boot: int,
             if isinstance(d, str):
                 out.append(PairedRow(row.label, row.kind, 0, why=d))
                 continue
-            diffs[(row.group, row.label)] = d
-            out.append(
-                PairedRow(row.label, row.kind, len(d), float(d.mean()), bootstrap_ci([d], n_boot, table.level, rng))
-            )
+            d, partial = d if isinstance(d, tuple) else (d, "")
+            if not partial:
+                diffs[(row.group, row.label)] = d
+            ci = bootstrap_ci([d], n_boot, table.level, rng)
+            out.append(PairedRow(row.label, row.kind, len(d), float(d.mean()), ci, partial=partial))
         else:
             members = [r for r in table.rows if r.kind == "set" and (row.kind == "total" or r.group == row.group)]
             ds = [diffs.get((r.group, r.label)) for r in members]

@@ -92,7 +92,8 @@ def markdown(table: Table) -> str:
         for r in p.rows:
             label = r.label if r.kind == "set" else f"**{r.label}**"
             value = r.why if r.value is None else f"{r.value:+.2f} [{r.ci[0]:+.2f}, {r.ci[1]:+.2f}]"
-            out.append(f"| {label} | {value} | {r.n_meshes} |")
+            meshes = f"{r.n_meshes} (partial: {r.partial})" if r.partial else r.n_meshes
+            out.append(f"| {label} | {value} | {meshes} |")
     if _has_refinement(table):
         out += [
             "",
@@ -167,13 +168,12 @@ def paired_csv(table: Table) -> str:
     """The paired comparison, one line per row."""
     buf = io.StringIO()
     w = csv.writer(buf)
-    w.writerow(["row", "kind", "a", "b", "delta", "ci_low", "ci_high", "n_meshes", "why"])
+    w.writerow(["row", "kind", "a", "b", "delta", "ci_low", "ci_high", "n_meshes", "why", "partial"])
     p = table.paired
     f = lambda v: "" if v is None else f"{v:.4f}"  # noqa: E731
     for r in p.rows:
-        w.writerow(
-            [r.label, r.kind, p.a.key, p.b.key, f(r.value), f(r.ci and r.ci[0]), f(r.ci and r.ci[1]), r.n_meshes, r.why]
-        )
+        ci = (f(r.ci and r.ci[0]), f(r.ci and r.ci[1]))
+        w.writerow([r.label, r.kind, p.a.key, p.b.key, f(r.value), *ci, r.n_meshes, r.why, r.partial])
     return buf.getvalue()
 
 
