@@ -169,7 +169,7 @@ def test_an_interrupt_waits_for_the_store_call_under_way(tmp_path, monkeypatch):
     assert steps == ["the write goes on"]
 
 
-def test_an_interrupt_during_training_reaches_the_fold_as_an_interrupt(tmp_path):
+def test_an_interrupt_during_training_reaches_the_fold_as_an_interrupt():
     """Lightning answers Ctrl-C or SIGTERM in fit() with sys.exit(1), which would end the run FAILED."""
     import numpy as np
     import pytorch_lightning as pl
