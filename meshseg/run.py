@@ -38,6 +38,7 @@ log = logging.getLogger("meshseg.run")
 
 BRANCHES = (1, 2, 3, 4)
 RING_ADJACENCY = ("edge", "vertex")
+RESAMPLE = ("fold", "epoch")  # budget.resample
 #: the run tags a fold's saved model carries along (its model.yaml says where it came from)
 ABOUT_MODEL = ("dataset", "category", "fold", "model", "branches", "features", "budget", "config_hash", "git_sha")
 
@@ -101,6 +102,8 @@ def check_knobs(cfg: DictConfig) -> None:
     b = cfg.budget
     if not (int(b.epochs) >= 1 and int(b.batch_size) >= 1 and (b.faces_per_mesh is None or int(b.faces_per_mesh) >= 1)):
         raise ConfigError(f"budget {b.name}: epochs and batch_size must be >= 1 and faces_per_mesh >= 1 or null")
+    if b.get("resample", "fold") not in RESAMPLE:
+        raise ConfigError(f"budget.resample={b.resample} is not allowed: choose one of {list(RESAMPLE)}")
     if not (isinstance(cfg.seed, int) and isinstance(cfg.workers, int) and cfg.workers >= 1):
         raise ConfigError(f"seed={cfg.seed} must be an integer and workers={cfg.workers} an integer >= 1")
     checkpoint_dir(cfg, "")  # tracking.checkpoints checked

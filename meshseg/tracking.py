@@ -157,11 +157,15 @@ def flatten(node, prefix: str = "", lists: bool = True) -> dict[str, object]:
     return out
 
 
-def config_hash(config: dict, exclude=(), extra: dict | None = None) -> str:
-    """sha256 (16 hex) of the config's leaves except the `exclude` keys (a key excludes its subtree),
-    plus `extra` (e.g. the data hash)."""
-    prefixes = tuple(exclude)
-    leaves = {k: v for k, v in flatten(config).items() if not any(k == p or k.startswith(p + ".") for p in prefixes)}
+def config_hash(config: dict, exclude=(), extra: dict | None = None, defaults: dict | None = None) -> str:
+    """sha256 (16 hex) of the config's leaves except the `exclude` keys (a key excludes its subtree)
+    and the `defaults` leaves that hold their default value, plus `extra` (e.g. the data hash)."""
+    prefixes, defaults = tuple(exclude), defaults or {}
+    leaves = {
+        k: v
+        for k, v in flatten(config).items()
+        if not any(k == p or k.startswith(p + ".") for p in prefixes) and not (k in defaults and defaults[k] == v)
+    }
     blob = json.dumps({"config": leaves, "extra": extra or {}}, sort_keys=True, default=str)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
@@ -177,7 +181,8 @@ def fold_identity(cfg, category: str, fold, data_hash: str) -> tuple[dict, str]:
     config = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
     config.update(category=category, fold=fold.index)
     extra = {"data_hash": data_hash, "train": list(fold.train), "test": list(fold.test)}
-    return config, config_hash(config, config["tracking"]["hash_exclude"], extra)
+    tracking = config["tracking"]
+    return config, config_hash(config, tracking["hash_exclude"], extra, tracking.get("hash_defaults"))
 
 
 def system_tags(source: str, command: str, git: str) -> dict[str, str]:

@@ -61,3 +61,13 @@ def test_what_is_not_a_knob_keeps_the_hash(monkeypatch, tmp_path):
     assert identity(moved, category) == base
     assert identity([*overrides, "seed=1"], category) != base
     assert identity([*overrides, "refine=none"], category) != base
+
+
+def test_a_knob_at_its_hash_default_keeps_the_hash_and_any_other_value_moves_it():
+    """budget.resample and split.seed came after runs were shipped: at their defaults the hash is the one
+    the golden table holds; set away from them, the run is another config."""
+    base = identity(["dataset=psb", "budget=cpu"], "Airplane")
+    assert base == HASHES["cnn1d 3B cpu psb"]
+    assert identity(["dataset=psb", "budget=cpu", "budget.resample=fold", "split.seed=null"], "Airplane") == base
+    assert identity(["dataset=psb", "budget=cpu", "budget.resample=epoch"], "Airplane") != base
+    assert identity(["dataset=psb", "budget=cpu", "split.seed=1"], "Airplane") != base

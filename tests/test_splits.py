@@ -9,6 +9,7 @@ from omegaconf import OmegaConf
 from meshseg.data.datasets import Synthetic
 from meshseg.data.mesh import MeshDataError
 from meshseg.data.splits import FixedSplit, KFold, LeaveOneOut, folds_for, kfold, leave_one_out, read_split_file
+from meshseg.errors import ConfigError
 
 IDS = [str(i) for i in range(61, 81)]
 
@@ -30,6 +31,19 @@ def test_kfold_deals_sorted_ids():
     assert [len(f.test) for f in kfold([str(i) for i in range(12)], 5)] == [3, 3, 2, 2, 2]
     with pytest.raises(ValueError, match="between 2 and 3 folds"):
         kfold(["1", "2", "3"], 5)
+
+
+def test_kfold_with_a_seed_deals_another_seeded_assignment():
+    folds = kfold(IDS, 5, seed=1)
+    assert [f.test for f in folds] == [f.test for f in kfold(reversed(IDS), 5, seed=1)]  # by id, then the seed
+    assert [f.test for f in folds] != [f.test for f in kfold(IDS, 5)]  # not the default dealing
+    assert [f.test for f in folds] != [f.test for f in kfold(IDS, 5, seed=2)]
+    tests = [m for f in folds for m in f.test]
+    assert sorted(tests) == sorted(IDS) and [len(f.test) for f in folds] == [4] * 5
+    for f in folds:
+        assert list(f.test) == sorted(f.test, key=int) and set(f.train) == set(IDS) - set(f.test)
+    with pytest.raises(ConfigError, match=r"split.seed=-1 is not allowed"):
+        KFold(5, seed=-1)
 
 
 def test_fixed_split_psb_published_ids(psb):

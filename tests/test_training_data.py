@@ -39,3 +39,99 @@ def test_labels_travel_with_their_faces():
     for x, y in loader:
         rows = x[:, 0, 0].numpy().astype(int)
         assert np.array_equal(y.numpy(), rows % 4) and y.dtype.is_floating_point is False
+
+
+# budget.resample=epoch: a fresh seeded sample of faces per mesh every epoch
+
+
+class _Source:
+    """Two meshes of 300 and 40 faces; feature value = 1000 * mesh + face, label = face % 3."""
+
+    category = "c"
+
+    class dataset:
+        @staticmethod
+        def label_names(category):
+            return ["a", "b", "c"]
+
+    def __init__(self):
+        from meshseg.timing import Timings
+
+        self.timings = Timings()
+        self.sizes = {"m0": 300, "m1": 40}
+
+    def load(self, mesh_id):
+        from types import SimpleNamespace
+
+        n, k = self.sizes[mesh_id], int(mesh_id[1])
+        X = (1000 * k + np.arange(n, dtype=np.float32))[:, None].repeat(D, axis=1)
+        return SimpleNamespace(n_faces=n, labels=np.arange(n) % 3), [X, X + 0.5]
+
+
+def test_each_epoch_draws_its_own_seeded_sample_of_faces():
+    from meshseg.training.data import epoch_samples
+
+    draws = epoch_samples(300, 50, epochs=6, seed=3, mesh_index=0)
+    assert [len(d) for d in draws] == [50] * 6
+    assert all(len(np.unique(d)) == 50 and d.min() >= 0 and d.max() < 300 for d in draws)  # no repeat in an epoch
+    assert len({tuple(d) for d in draws}) == 6  # a different sample every epoch
+    assert all(np.array_equal(a, b) for a, b in zip(draws, epoch_samples(300, 50, 6, 3, 0)))  # reproducible
+    assert not np.array_equal(draws[0], epoch_samples(300, 50, 6, 4, 0)[0])  # another seed, another draw
+    assert not np.array_equal(draws[0], epoch_samples(300, 50, 6, 3, 1)[0])  # another mesh, another draw
+    # every face, every epoch, where the budget takes all faces or more than the mesh has
+    assert all(np.array_equal(d, np.arange(40)) for d in epoch_samples(40, None, 3, 0, 0))
+    assert all(np.array_equal(d, np.arange(40)) for d in epoch_samples(40, 50, 3, 0, 0))
+
+
+def test_the_train_set_holds_every_epochs_faces_and_which_rows_each_epoch_trains_on():
+    from meshseg.training.data import build_train, epoch_samples
+
+    train = build_train(_Source(), ["m0", "m1"], 50, seed=3, epochs=4)
+    raw = train.standardiser.mean[0, 0] + train.X[:, 0, 0] * train.standardiser.scale[0, 0]  # undo standardising
+    for e, rows in enumerate(train.epoch_rows):
+        want = np.concatenate([epoch_samples(300, 50, 4, 3, 0)[e], 1000 + np.arange(40)])
+        assert np.allclose(np.sort(raw[rows]), np.sort(want), atol=1e-2)  # 50 of m0's faces, all 40 of m1's
+        assert np.array_equal(train.y[rows], np.round(raw[rows]).astype(int) % 1000 % 3)  # labels travel along
+    assert train.samples_per_epoch == 90 and len(np.unique(np.round(raw))) == len(raw)  # each face held once
+    assert 90 < len(train.y) <= 4 * 50 + 40
+    once = build_train(_Source(), ["m0", "m1"], 50, seed=3)  # resample=fold: one sample, no epoch rows
+    assert once.epoch_rows is None and once.samples_per_epoch == len(once.y) == 90
+
+
+def test_training_sees_each_epochs_own_sample():
+    """Through Lightning: epoch e's batches hold exactly the rows drawn for epoch e (Lightning tells the
+    sampler the epoch), shuffled, and the same again for the same seed."""
+    import pytorch_lightning as pl
+    import torch
+
+    from meshseg.training.context import TrainContext
+    from meshseg.training.loop import train_stage
+
+    rows = tuple(np.sort(np.random.default_rng(e).choice(N, 100, replace=False)) for e in range(3))
+    base = train_set()
+    train = TrainSet(base.X, base.y, base.standardiser, N, 4, rows)
+
+    class Record(pl.LightningModule):
+        def __init__(self):
+            super().__init__()
+            self.w, self.seen = torch.nn.Parameter(torch.zeros(1)), []
+
+        def training_step(self, batch, i):
+            if i == 0:
+                self.seen.append([])
+            self.seen[-1].append(batch[0][:, 0, 0].numpy().astype(int))
+            return (self.w**2).sum()
+
+        def configure_optimizers(self):
+            return torch.optim.SGD(self.parameters(), lr=0.1)
+
+    def fit(seed):
+        module = Record()
+        train_stage(module, train, TrainContext(epochs=3, batch_size=32, seed=seed))
+        return [np.concatenate(s) for s in module.seen]
+
+    seen = fit(5)
+    assert len(seen) == 3
+    for e, order in enumerate(seen):
+        assert np.array_equal(np.sort(order), rows[e]) and not np.array_equal(order, rows[e])
+    assert all(np.array_equal(a, b) for a, b in zip(seen, fit(5)))

@@ -8,6 +8,8 @@ from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
+import numpy as np
+
 from meshseg.data.datasets import MeshDataset, normalise_name, sort_ids
 from meshseg.data.mesh import MeshDataError
 from meshseg.errors import ConfigError
@@ -26,13 +28,15 @@ def leave_one_out(ids) -> list[Fold]:
     return [Fold(i, tuple(ids[:i] + ids[i + 1 :]), (m,)) for i, m in enumerate(ids)]
 
 
-def kfold(ids, k: int = 5) -> list[Fold]:
+def kfold(ids, k: int = 5, seed: int | None = None) -> list[Fold]:
     """Meshes sorted by id and dealt round-robin into k folds (the paper's own lists were never
-    published; this is deterministic and balanced to within one mesh)."""
+    published; this is deterministic and balanced to within one mesh). With `seed`, the sorted meshes
+    are shuffled by that seed before dealing: another fold assignment, as reproducible."""
     ids = sort_ids(ids)
     if not 2 <= k <= len(ids):
         raise ConfigError(f"{k}-fold split needs between 2 and {len(ids)} folds for {len(ids)} meshes")
-    tests = [ids[i::k] for i in range(k)]
+    dealt = ids if seed is None else [ids[i] for i in np.random.default_rng(seed).permutation(len(ids))]
+    tests = [sort_ids(dealt[i::k]) for i in range(k)]
     return [Fold(i, tuple(m for m in ids if m not in set(t)), tuple(t)) for i, t in enumerate(tests)]
 
 
@@ -135,16 +139,21 @@ class LeaveOneOut(SplitProtocol):
 
 
 class KFold(SplitProtocol):
-    """Meshes sorted by id and dealt round-robin into k folds (paper Tables 2 and 3)."""
+    """Meshes sorted by id and dealt round-robin into k folds (paper Tables 2 and 3); with `seed`,
+    shuffled by it first (another fold assignment, to measure how much the fold lists alone move a set)."""
 
-    def __init__(self, k: int = 5):
+    def __init__(self, k: int = 5, seed: int | None = None):
         if not (isinstance(k, int) and k >= 2):
             raise ConfigError(f"split.k={k} is not allowed: it must be an integer >= 2")
-        self.k = k
+        if not (seed is None or (isinstance(seed, int) and not isinstance(seed, bool) and seed >= 0)):
+            raise ConfigError(
+                f"split.seed={seed} is not allowed: it must be null (meshes dealt by id) or an integer >= 0"
+            )
+        self.k, self.seed = k, seed
         self.name = f"{k}fold"
 
     def make(self, dataset: MeshDataset, category: str) -> list[Fold]:
-        return kfold(dataset.mesh_ids(category), self.k)
+        return kfold(dataset.mesh_ids(category), self.k, self.seed)
 
 
 class FixedSplit(SplitProtocol):

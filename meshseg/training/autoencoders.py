@@ -113,6 +113,8 @@ class AutoencoderSoftmax(Fitter):
 class AutoencoderForest(Fitter):
     """ "AE & RF": the autoencoders (pre-trained, not fine-tuned), then a random forest on the codes."""
 
+    epochs_trained = False  # its forest fits once on the codes
+
     def __init__(self, autoencoders: dict, forest: dict, context: TrainContext):
         super().__init__(context)
         self.autoencoders, self.forest = autoencoders, dict(forest)

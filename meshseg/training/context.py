@@ -14,6 +14,7 @@ class TrainContext:
     epochs: int  # passes over the training faces, per network stage
     batch_size: int
     seed: int = 0
+    resample: str = "fold"  # fold: one sample of training faces for all epochs | epoch: a fresh sample each epoch
     accelerator: str = "cpu"  # cpu | gpu
     devices: int | str = 1
     precision: str | int = "32-true"
@@ -30,6 +31,7 @@ class TrainContext:
             epochs=int(budget.epochs),
             batch_size=int(budget.batch_size),
             seed=int(seed),
+            resample=str(budget.get("resample", "fold")),
             accelerator=str(trainer.accelerator),
             devices=trainer.devices,
             precision=trainer.precision,

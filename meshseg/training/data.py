@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytorch_lightning as pl
 import torch
-from torch.utils.data import BatchSampler, DataLoader, Dataset, RandomSampler
+from torch.utils.data import BatchSampler, DataLoader, Dataset, RandomSampler, Sampler
 
 from meshseg.data.datasets import MeshDataset
 from meshseg.data.mesh import Mesh
@@ -117,6 +117,13 @@ class TrainSet:
     standardiser: Standardiser
     mesh_faces: int  # faces of the training meshes before sampling
     n_classes: int  # the category's labels (a class may have no training face)
+    #: budget.resample=epoch: epoch e trains on rows epoch_rows[e] of X (X holds every face any epoch
+    #: draws); None: every epoch trains on all of X
+    epoch_rows: tuple[np.ndarray, ...] | None = None
+
+    @property
+    def samples_per_epoch(self) -> int:
+        return len(self.y) if self.epoch_rows is None else len(self.epoch_rows[0])
 
 
 def sample_faces(n_faces: int, per_mesh: int | None, rng: np.random.Generator) -> np.ndarray:
@@ -127,13 +134,33 @@ def sample_faces(n_faces: int, per_mesh: int | None, rng: np.random.Generator) -
     return np.sort(rng.choice(n_faces, size=per_mesh, replace=False))
 
 
-def build_train(source: FeatureSource, mesh_ids, faces_per_mesh: int | None, seed: int) -> TrainSet:
-    """Sampled faces of every training mesh, all branches, standardised on themselves."""
+def epoch_samples(n_faces: int, per_mesh: int | None, epochs: int, seed: int, mesh_index: int) -> list[np.ndarray]:
+    """budget.resample=epoch: one uniform sample of `per_mesh` faces (sorted, without replacement) for
+    each epoch, drawn afresh from a generator seeded by (seed, mesh, epoch), so a resumed fold draws what
+    an uninterrupted one does; every face each epoch where `per_mesh` is None or covers the mesh."""
+    return [
+        sample_faces(n_faces, per_mesh, np.random.default_rng([seed, mesh_index, epoch])) for epoch in range(epochs)
+    ]
+
+
+def build_train(
+    source: FeatureSource, mesh_ids, faces_per_mesh: int | None, seed: int, epochs: int | None = None
+) -> TrainSet:
+    """Sampled faces of every training mesh, all branches, standardised on themselves. With `epochs`
+    (budget.resample=epoch), each epoch gets its own sample of `faces_per_mesh` faces per mesh: X holds
+    the union of the epochs' samples (standardised on it) and `epoch_rows` says which rows each trains on."""
     rng = np.random.default_rng(seed)
-    xs, ys, total = [], [], 0
-    for mesh_id in mesh_ids:
+    xs, ys, total, per_epoch, offset = [], [], 0, [[] for _ in range(epochs or 0)], 0
+    for i, mesh_id in enumerate(mesh_ids):
         mesh, scales = source.load(mesh_id)
-        idx = sample_faces(mesh.n_faces, faces_per_mesh, rng)
+        if epochs is None:
+            idx = sample_faces(mesh.n_faces, faces_per_mesh, rng)
+        else:
+            drawn = epoch_samples(mesh.n_faces, faces_per_mesh, epochs, seed, i)
+            idx = np.unique(np.concatenate(drawn))
+            for rows, d in zip(per_epoch, drawn):
+                rows.append(offset + np.searchsorted(idx, d))
+            offset += len(idx)
         xs.append(np.stack([X[idx] for X in scales], axis=1))
         ys.append(mesh.labels[idx])
         total += mesh.n_faces
@@ -142,7 +169,8 @@ def build_train(source: FeatureSource, mesh_ids, faces_per_mesh: int | None, see
         standardiser = Standardiser(X)
         X = standardiser(X)
     n_classes = len(source.dataset.label_names(source.category))
-    return TrainSet(X, np.concatenate(ys).astype(np.int64), standardiser, total, n_classes)
+    epoch_rows = None if epochs is None else tuple(np.concatenate(rows) for rows in per_epoch)
+    return TrainSet(X, np.concatenate(ys).astype(np.int64), standardiser, total, n_classes, epoch_rows)
 
 
 def iter_test_inputs(source: FeatureSource, mesh_ids, standardiser: Standardiser) -> Iterator[tuple[Mesh, np.ndarray]]:
@@ -168,8 +196,31 @@ class _Rows(Dataset):
         return self.X[rows], self.y[rows]
 
 
+class EpochBatches(Sampler):
+    """Mini-batches of the rows drawn for the current epoch (budget.resample=epoch), shuffled by a
+    generator seeded with (seed, epoch). Lightning calls `set_epoch` before each epoch."""
+
+    def __init__(self, epoch_rows: tuple[np.ndarray, ...], batch_size: int, seed: int):
+        self.epoch_rows, self.batch_size, self.seed, self.epoch = epoch_rows, batch_size, seed, 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def __len__(self) -> int:
+        return -(-len(self.epoch_rows[0]) // self.batch_size)
+
+    def __iter__(self) -> Iterator[list[int]]:
+        rows = self.epoch_rows[self.epoch % len(self.epoch_rows)]
+        order = rows[
+            torch.randperm(len(rows), generator=torch.Generator().manual_seed(self.seed * 100_003 + self.epoch)).numpy()
+        ]
+        for i in range(0, len(order), self.batch_size):
+            yield order[i : i + self.batch_size].tolist()
+
+
 class FoldDataModule(pl.LightningDataModule):
-    """The training faces of one fold, shuffled each epoch with a seeded generator."""
+    """The training faces of one fold, shuffled each epoch with a seeded generator (with
+    budget.resample=epoch, the rows of each epoch's own sample)."""
 
     def __init__(self, train: TrainSet, batch_size: int, seed: int):
         super().__init__()
@@ -177,5 +228,9 @@ class FoldDataModule(pl.LightningDataModule):
 
     def train_dataloader(self) -> DataLoader:
         rows = _Rows(self.train.X, self.train.y)
+        if self.train.epoch_rows is not None:
+            return DataLoader(
+                rows, sampler=EpochBatches(self.train.epoch_rows, self.batch_size, self.seed), batch_size=None
+            )
         order = RandomSampler(rows, generator=torch.Generator().manual_seed(self.seed))
         return DataLoader(rows, sampler=BatchSampler(order, self.batch_size, drop_last=False), batch_size=None)

@@ -43,14 +43,16 @@ def fit_predict(
     timings = source.timings
     with timings("features"):
         source.prepare([*fold.train, *fold.test], workers)
-    train = build_train(source, fold.train, faces_per_mesh, ctx.seed)
+    epochs = ctx.epochs if ctx.resample == "epoch" else None
+    train = build_train(source, fold.train, faces_per_mesh, ctx.seed, epochs)
     log.info(
-        "fold %d: %d training faces sampled from %d (%d meshes), %d classes",
+        "fold %d: %d training faces sampled from %d (%d meshes), %d classes%s",
         fold.index,
         len(train.y),
         train.mesh_faces,
         len(fold.train),
         train.n_classes,
+        f"; {train.samples_per_epoch} of them each epoch" if train.epoch_rows is not None else "",
     )
 
     pl.seed_everything(ctx.seed, workers=True, verbose=False)
@@ -64,7 +66,8 @@ def fit_predict(
         with timings("predict"):
             probabilities.append(fitter.predict_proba(X))
     counts = {
-        "train_samples": len(train.y),
+        "train_samples": train.samples_per_epoch,
+        "train_distinct": len(train.y),  # faces any epoch trained on (more than train_samples with resample=epoch)
         "train_faces": train.mesh_faces,
         "test_faces": sum(m.n_faces for m in meshes),
         "epochs": fitter.epochs_,

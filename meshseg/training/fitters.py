@@ -28,7 +28,15 @@ from meshseg.training.module import Segmenter
 class Fitter:
     """Base of every fitter: keeps the run's context; subclasses implement `fit` and `predict_proba`."""
 
+    #: whether it trains epoch by epoch (budget.resample=epoch means something only then)
+    epochs_trained = True
+
     def __init__(self, context: TrainContext):
+        if context.resample == "epoch" and not self.epochs_trained:
+            raise ConfigError(
+                f"budget.resample=epoch is not allowed with {type(self).__name__}: it fits once on a fold's "
+                "sampled faces, not epoch by epoch (use budget.resample=fold)"
+            )
         self.context = context
         self.parts_: dict[str, object] = {}
         self.epochs_ = 0
@@ -87,6 +95,8 @@ def make_forest(forest: dict, n_classes: int, ctx: TrainContext) -> RandomForest
 class ForestFitter(Fitter):
     """A random forest on the (standardised, single-scale) features of the training faces (rf: the
     paper's CF figure). `forest`: scikit-learn RandomForestClassifier settings."""
+
+    epochs_trained = False
 
     def __init__(self, forest: dict, context: TrainContext):
         super().__init__(context)
