@@ -108,6 +108,7 @@ def check_knobs(cfg: DictConfig) -> None:
         raise ConfigError(f"seed={cfg.seed} must be an integer and workers={cfg.workers} an integer >= 1")
     checkpoint_dir(cfg, "")  # tracking.checkpoints checked
     build_refinement(cfg.refine)  # its settings checked before any fold trains, not after
+    check_fitter(cfg)
     build_split(cfg.split)
     FeatureSet.from_config(cfg.features)  # unknown groups and bad group parameters
     t = cfg.tracking
@@ -116,6 +117,16 @@ def check_knobs(cfg: DictConfig) -> None:
             f"tracking.heartbeat_s={t.heartbeat_s} must be > 0 and tracking.lease_timeout_s="
             f"{t.lease_timeout_s} more than twice it"
         )
+
+
+def check_fitter(cfg: DictConfig) -> None:
+    """The model's fitter built with the run's training context: what the context refuses (a precision
+    the CPU lacks) and what the fitter refuses with it (budget.resample=epoch for a forest) stops here,
+    before any feature is computed or run created."""
+    from meshseg.training.context import TrainContext
+    from meshseg.training.fitters import build_fitter
+
+    build_fitter(cfg.model, TrainContext.from_config(cfg.budget, cfg.trainer, cfg.seed))
 
 
 def resolve_cell(cfg: DictConfig, dataset: MeshDataset) -> tuple[str, Fold]:

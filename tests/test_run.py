@@ -132,6 +132,15 @@ def test_bad_values_fail_at_once_listing_what_is_allowed(store):
         ("budget.epochs=0", "error: budget smoke: epochs and batch_size must be >= 1"),
         ("tracking.uri=garbage://x", "error: tracking.uri=garbage://x: unknown store scheme 'garbage'"),
         ("refine.lam=-1", "refine.lam=-1"),
+        (
+            "budget.resample=sometimes",
+            "error: budget.resample=sometimes is not allowed: choose one of ['fold', 'epoch']",
+        ),
+        (
+            "split.seed=-2",
+            "error: split.seed=-2 is not allowed: it must be null (meshes dealt by id) or an integer >= 0",
+        ),
+        ("model=rf budget.resample=epoch", "error: budget.resample=epoch is not allowed with ForestFitter"),
         ("+modle=cnn1d", "error: unknown setting 'modle' (did you mean model?)"),
         ("modle=cnn1d", "error: unknown setting 'modle' (did you mean model?)"),
     ],
@@ -139,7 +148,7 @@ def test_bad_values_fail_at_once_listing_what_is_allowed(store):
 def test_bad_values_under_m_get_one_line_before_any_work(store, override, message):
     """A sweep checks every job's settings before the first starts: one `error:` line, no traceback,
     nothing in the store (`refine.lam=-1` used to be refused only after the fold had trained)."""
-    r = meshseg_run(*SMALL, override, "-m", timeout=120)
+    r = meshseg_run(*SMALL, *override.split(), "-m", timeout=120)
     assert r.returncode == 1 and message in r.stderr, r.stderr[-2000:]
     assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
     assert not (store / "mlflow.db").exists() or runs(store) == []

@@ -135,3 +135,16 @@ def test_training_sees_each_epochs_own_sample():
     for e, order in enumerate(seen):
         assert np.array_equal(np.sort(order), rows[e]) and not np.array_equal(order, rows[e])
     assert all(np.array_equal(a, b) for a, b in zip(seen, fit(5)))
+
+
+def test_resampling_each_epoch_is_refused_for_a_fitter_that_fits_once():
+    import pytest
+
+    from meshseg.errors import ConfigError
+    from meshseg.training.context import TrainContext
+    from meshseg.training.fitters import ForestFitter, NetFitter
+
+    ctx = TrainContext(epochs=2, batch_size=8, resample="epoch")
+    with pytest.raises(ConfigError, match=r"budget.resample=epoch is not allowed with ForestFitter"):
+        ForestFitter({"n_estimators": 2}, ctx)
+    NetFitter(lambda **kw: None, {}, ctx)  # a network trains epoch by epoch: allowed
