@@ -22,6 +22,10 @@ one), about 1.8x faster on 2 CPU cores (benchmarks/train_throughput.py), by
 * pooling before the LeakyReLU (it is monotonic, so the max commutes with it: half the activation work)
   in one autograd Function that keeps a 0/1 "first of the pair won" mask instead of int64 indices.
 
+Under torch.autocast (Lightning's ``precision="bf16-mixed"``) each convolution casts its operands to the
+autocast dtype itself, so that its backward sees the tensors the convolution read; the result equals
+`PaperCNN1D` under autocast to bf16 rounding (tests/test_bf16.py). Without autocast nothing changes.
+
 Batch norm in train mode is PyTorch's own (``F.batch_norm`` on the channels-last view: normalises with
 the batch statistics, updates the running ones with momentum 0.1, eps 1e-5), so it behaves exactly as
 ``nn.BatchNorm1d``. In eval mode it is the affine map of the running statistics, folded into the
@@ -67,6 +71,13 @@ class _Conv(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, padding: tuple[int, int]):
+        ctx.dtypes = x.dtype, weight.dtype, bias.dtype
+        if torch.is_autocast_enabled(x.device.type):
+            # Autocast would cast F.conv2d's operands only inside the call, so the backward would pair a bf16
+            # gradient with the fp32 tensors saved here, which convolution_backward refuses (oneDNN: "could not
+            # create a primitive descriptor"). Cast here instead and save what the convolution really read.
+            dtype = torch.get_autocast_dtype(x.device.type)
+            x, weight, bias = x.to(dtype), weight.to(dtype), bias.to(dtype)
         ctx.save_for_backward(x, weight)
         ctx.padding = list(padding)
         return F.conv2d(x, weight, bias, padding=padding)
@@ -82,7 +93,13 @@ class _Conv(torch.autograd.Function):
             )
         if need_b:
             grad_b = grad.permute(0, 2, 3, 1).reshape(-1, grad.shape[1]).sum(0)  # a view when channels-last
-        return grad_x, grad_w, grad_b, None
+        # under autocast each gradient goes back in its input's own dtype (fp32 parameters); no-ops otherwise
+        dx, dw, db = ctx.dtypes
+        return _to(grad_x, dx), _to(grad_w, dw), _to(grad_b, db), None
+
+
+def _to(t: torch.Tensor | None, dtype: torch.dtype) -> torch.Tensor | None:
+    return None if t is None else t.to(dtype)
 
 
 class _MaxPool2LeakyReLU(torch.autograd.Function):

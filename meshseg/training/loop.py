@@ -90,11 +90,13 @@ def train_stage(module: pl.LightningModule, data: TrainSet, ctx: TrainContext, s
 
 @torch.no_grad()
 def transform(fn: nn.Module, X: np.ndarray, batch_size: int, device: torch.device) -> np.ndarray:
-    """fn applied to the rows of X in batches, in eval mode on `device`: (n, ...) float32."""
+    """fn applied to the rows of X in batches, in eval mode on `device`: (n, ...) float32, computed in float32
+    whatever `trainer.precision` trained fn (as `Segmenter.predict_proba`, which says why)."""
     was_training = fn.training
     fn.to(device).eval()
     try:
-        out = [fn(torch.from_numpy(X[i : i + batch_size]).to(device)).cpu() for i in range(0, len(X), batch_size)]
+        with torch.autocast(device.type, enabled=False):
+            out = [fn(torch.from_numpy(X[i : i + batch_size]).to(device)).cpu() for i in range(0, len(X), batch_size)]
     finally:
         fn.train(was_training)  # a later stage trains these layers again
     return torch.cat(out).numpy().astype(np.float32, copy=False)
