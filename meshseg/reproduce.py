@@ -9,7 +9,8 @@ write its report.
 Every (column, set) with folds missing becomes one `python -m meshseg.run -m` sweep over exactly those
 folds, column after column (the same Hydra app, sweeper and launcher config as a hand-typed sweep:
 launcher overrides pass through). Runs that exist are never launched again; an interrupted reproduce,
-rerun, does the rest. Cells no run can fill (a category the dataset lacks) are listed and left alone.
+rerun, does the rest. Cells no run can fill (a category the dataset lacks) are listed and left alone; cells
+outside a column's `sets:` (n/a) are no part of the study and never launched.
 Settings: conf/reproduce.yaml (conf/report.yaml's, plus report.dry_run).
 """
 
@@ -52,7 +53,8 @@ class MissingCell:
 
 def missing_cells(table: Table) -> list[MissingCell]:
     """Every incomplete (column, set) of the table, column by column (each column's sets in table order),
-    so the columns complete one after the other in the order the manifest or `report.columns` gives."""
+    so the columns complete one after the other in the order the manifest or `report.columns` gives.
+    Unavailable and n/a cells (outside the column's `sets:`) are not incomplete: none is launched."""
     sets = [row for row in table.rows if row.kind == "set"]
     return [
         MissingCell(row.label, c.column.key, tuple(c.overrides), c.category, tuple(c.missing))

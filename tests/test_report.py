@@ -243,6 +243,7 @@ def test_run_overrides_reach_the_runs_verbatim():
         (["report.level=95"], "report.level=95 must be a number between 0 and 1"),
         (["report.sets=Teddy"], "report.sets=Teddy must be a list"),
         (["report.paired=[cnn1d]"], r"report.paired=\['cnn1d'\] must be two column keys"),
+        (["report.paired=[[3B,1B],[1B]]"], r"must be two column keys, .* or a list of such pairs"),
         (["report.columns=3B"], "report.columns=3B must be a list of column keys"),
         (["report.columns=[]"], r"report.columns=\[\] must be a list of column keys"),
     ],

@@ -20,6 +20,8 @@ class ManifestError(errors.ManifestError):
 
 #: formats of predictions on disk a column can score (`predictions: {path, format}`)
 PREDICTION_FORMATS = ("psb_labels",)
+#: what a learning curve's x counts per fold run (`curves: {x: ...}`; meshseg/report/curves.py)
+CURVE_X = ("samples", "distinct")
 
 
 @dataclass(frozen=True)
@@ -36,6 +38,19 @@ class Column:
     label: str
     overrides: tuple[str, ...] | None  # None: the paper's number only, no runs (e.g. ShapePFCN)
     predictions: Predictions | None = None  # scored from disk instead of from runs
+    sets: tuple[str, ...] | None = None  # names of the only sets it has runs for (None: all); its other cells are n/a
+
+    def runs_on(self, set_name: str) -> bool:
+        """Whether the (column, set) cell is part of the study."""
+        return self.sets is None or set_name in self.sets
+
+
+@dataclass(frozen=True)
+class Curves:
+    """A learning-curve figure: accuracy against the training the cells' runs saw (`x`: CURVE_X)."""
+
+    x: str
+    series: tuple[tuple[str, tuple[str, ...]], ...]  # (name, column keys in order of increasing budget)
 
 
 @dataclass(frozen=True)
@@ -69,6 +84,8 @@ class Manifest:
     path: Path
     #: what the `published` numbers are: "Published" (the paper's) or e.g. "Reference" (a pinned run's)
     compared_with: str = "Published"
+    paired: tuple[tuple[str, str], ...] = ()  # column pairs (a, b) the report compares mesh by mesh, a - b
+    curves: Curves | None = None
 
     def only_columns(self, keys) -> Manifest:
         """The manifest with only the columns `keys` (in that order), their published numbers with them."""
@@ -92,7 +109,19 @@ class Manifest:
             for g in self.groups
         )
         columns = tuple(self.columns[j] for j in pick)
-        return replace(self, columns=columns, groups=groups, published_total=sliced(self.published_total))
+        paired = tuple(p for p in self.paired if set(p) <= set(keys))  # a pair loses meaning with either column
+        curves = self.curves
+        if curves is not None:
+            series = tuple((n, kept) for n, ks in curves.series if (kept := tuple(k for k in ks if k in keys)))
+            curves = replace(curves, series=series) if series else None
+        return replace(
+            self,
+            columns=columns,
+            groups=groups,
+            published_total=sliced(self.published_total),
+            paired=paired,
+            curves=curves,
+        )
 
     def cell_overrides(self, group: Group, column: Column) -> list[str]:
         """Run overrides of one (group, column): the manifest's, then the group's, then the column's."""
@@ -120,6 +149,65 @@ def _numbers(value, n: int, path, where: str) -> tuple[float | None, ...]:
     return tuple(None if v is None else float(v) for v in value)
 
 
+def _restricted(columns: list[Column], sets: dict, groups: list[Group], path) -> list[Column]:
+    """The columns with their `sets:` (given as {key: list}) as the manifest's set names. A set may be named
+    by its name or its category, as report.sets takes it (budget_study's `FourLeg` is the set `Fourleg`)."""
+    names: dict[str, list[str]] = {}
+    for g in groups:
+        for s in g.sets:
+            for name in dict.fromkeys((s.name, s.category)):
+                names.setdefault(name, []).append(s.name)
+    out = []
+    for c in columns:
+        given = sets.get(c.key)
+        if given is None:
+            out.append(c)
+            continue
+        if not isinstance(given, list) or not given:
+            raise ManifestError(path, f"column {c.key}: sets must be a non-empty list of set names, got {given!r}")
+        unknown = [str(n) for n in given if str(n) not in names]
+        if unknown:
+            known = ", ".join(s.name for g in groups for s in g.sets)
+            raise ManifestError(path, f"column {c.key}: sets {unknown} name no set of the manifest; its sets: {known}")
+        out.append(replace(c, sets=tuple(dict.fromkeys(s for n in given for s in names[str(n)]))))
+    return out
+
+
+def _keys(value, keys: list[str], path, where: str) -> tuple[str, ...]:
+    """A list of column keys of the manifest."""
+    if not isinstance(value, list) or not value:
+        raise ManifestError(path, f"{where}: expected a list of column keys, got {value!r}")
+    unknown = [str(k) for k in value if str(k) not in keys]
+    if unknown:
+        raise ManifestError(path, f"{where}: {unknown} name no column; the columns are {', '.join(keys)}")
+    return tuple(str(k) for k in value)
+
+
+def _pairs(value, keys: list[str], path) -> tuple[tuple[str, str], ...]:
+    """`paired:`, a list of [a, b] column-key pairs."""
+    if value is None:
+        return ()
+    if not isinstance(value, list):
+        raise ManifestError(path, f"paired: expected a list of [a, b] column-key pairs, got {value!r}")
+    pairs = tuple(_keys(p, keys, path, f"paired {p}") for p in value)
+    bad = [list(p) for p in pairs if len(p) != 2]
+    if bad:
+        raise ManifestError(path, f"paired: {bad} are not pairs [a, b] of column keys")
+    return pairs
+
+
+def _curves(value, keys: list[str], path) -> Curves | None:
+    """`curves: {x: samples|distinct, series: {name: [column keys in order of increasing budget]}}`."""
+    if value is None:
+        return None
+    if not isinstance(value, dict) or set(value) != {"x", "series"} or value["x"] not in CURVE_X:
+        raise ManifestError(path, f"curves: expected {{x: one of {CURVE_X}, series: {{name: [column keys]}}}}")
+    series = value["series"]
+    if not isinstance(series, dict) or not series:
+        raise ManifestError(path, f"curves: series must map names to lists of column keys, got {series!r}")
+    return Curves(value["x"], tuple((str(n), _keys(ks, keys, path, f"curves series {n}")) for n, ks in series.items()))
+
+
 def load_manifest(path: str | Path) -> Manifest:
     """Read and check a manifest; every problem is reported with the file's name."""
     path = Path(path)
@@ -138,7 +226,7 @@ def load_manifest(path: str | Path) -> Manifest:
         raise ManifestError(path, f"missing key(s) {missing}")
     if doc["name"] != path.stem:
         raise ManifestError(path, f"name {doc['name']!r} differs from the file name {path.stem!r}")
-    columns = []
+    columns, restrict = [], {}
     for i, c in enumerate(doc["columns"] or []):
         if not isinstance(c, dict) or not {"key", "label"} <= set(c):
             raise ManifestError(path, f"columns[{i}]: needs key and label")
@@ -156,6 +244,7 @@ def load_manifest(path: str | Path) -> Manifest:
                 )
             pred, over = Predictions(str(pred["path"]), str(pred["format"])), over or ()
         columns.append(Column(str(c["key"]), str(c["label"]), over, pred))
+        restrict[str(c["key"])] = c.get("sets")
     if not columns or len({c.key for c in columns}) != len(columns):
         raise ManifestError(path, "columns must be a non-empty list with distinct keys")
     n = len(columns)
@@ -187,6 +276,8 @@ def load_manifest(path: str | Path) -> Manifest:
         )
     if not groups:
         raise ManifestError(path, "no groups")
+    columns = _restricted(columns, restrict, groups, path)
+    keys = [c.key for c in columns]
     total = doc.get("total") or {}
     return Manifest(
         str(doc["name"]),
@@ -200,4 +291,6 @@ def load_manifest(path: str | Path) -> Manifest:
         _numbers(total.get("published"), n, path, "total published"),
         path,
         str(doc.get("compared_with", "Published")),
+        _pairs(doc.get("paired"), keys, path),
+        _curves(doc.get("curves"), keys, path),
     )

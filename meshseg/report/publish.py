@@ -66,7 +66,7 @@ def build(manifest: Manifest, cfg: DictConfig) -> Table:
         level=float(s.level),
         seed=int(s.seed),
         sets=sets,
-        paired=None if s.get("paired") is None else tuple(s.paired),
+        paired=None if s.get("paired") is None else OmegaConf.to_container(s.paired),  # replaces the manifest's
     )
     # the settings that decide which runs a table lacks go into its `meshseg.reproduce` command
     if s.get("columns") is not None:

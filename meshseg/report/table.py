@@ -4,7 +4,9 @@ A cell is one (column, set): the mean accuracy over all test meshes of all folds
 bootstrap interval over those meshes. Runs are found by the config hash `meshseg.run` gives them, so
 only runs made with exactly the cell's configuration (budget included) count. A cell whose folds are
 not all FINISHED is incomplete and has no value. An average row is the mean of its sets' values
-(the paper's way: every set weighs the same), defined only when all of them are complete.
+(the paper's way: every set weighs the same), defined only when all of them are complete. A column with
+`sets:` has no cells in other sets: those are n/a (no part of the study), as is its average over a group
+it covers only in part.
 
 Every run column also gets the refinement's own effect: per set, refined minus raw (the network's argmax)
 accuracy on each test mesh, with a paired bootstrap interval, so a reader sees whether the graph cut helps.
@@ -47,13 +49,17 @@ class Cell:
     category: str | None = None  # the dataset's own name for the set
     config_hashes: tuple[str, ...] = ()  # its fold runs (the same in every store the runs are imported into)
     seconds: tuple[float, ...] = ()  # wall time of each of its fold runs (what the next runs will take)
+    counts: tuple[dict[str, int], ...] = ()  # the RUN_COUNTS each of its fold runs logged (learning curves)
+    outside: bool = False  # no part of the study: the column's `sets` leave this set (or part of this group) out
     members: list[Cell] = field(default_factory=list)  # an average's set cells
     value: float | None = None
     ci: tuple[float, float] | None = None
 
     @property
     def status(self) -> str:
-        """published | unavailable | incomplete | ok."""
+        """n/a | published | unavailable | incomplete | ok."""
+        if self.outside:
+            return "n/a"
         if self.column.overrides is None:
             return "published"
         if self.members:
@@ -76,7 +82,9 @@ class Cell:
         return f"— ({self.folds - len(self.missing)}/{self.folds})"
 
     def why(self) -> str:
-        """What keeps an incomplete or unavailable cell from having a number."""
+        """What keeps an n/a, incomplete or unavailable cell from having a number."""
+        if self.outside:
+            return f"{self.column.key} is run on {', '.join(self.column.sets)} only"
         if self.members:
             n = sum(m.status != "ok" for m in self.members)
             return f"{n} of {len(self.members)} sets not complete"
@@ -121,7 +129,7 @@ class Table:
     metric: str
     level: float
     budget_text: dict[str, str] = field(default_factory=dict)  # budget name -> what it trains on
-    paired: Paired | None = None
+    pairs: list[Paired] = field(default_factory=list)  # report.paired's pair, else the manifest's `paired:`
     refinement: list[tuple[Column, list[PairedRow]]] = field(default_factory=list)  # refined - raw per run column
     sets: tuple[str, ...] | None = None  # report.sets, when the table keeps only some sets
     settings: tuple[str, ...] = ()  # other report.* settings that decide which runs it lacks (report.results)
@@ -133,6 +141,11 @@ class Table:
     @property
     def columns(self) -> tuple[Column, ...]:
         return self.manifest.columns
+
+    @property
+    def paired(self) -> Paired | None:
+        """The first paired comparison (the one report.paired names), or None."""
+        return self.pairs[0] if self.pairs else None
 
 
 @dataclass
@@ -302,11 +315,20 @@ def _fill(cell: Cell, category: str, dataset, split, resolved: dict, runs: _Runs
     cell.folds, cell.missing = len(folds), tuple(missing)
     cell.config_hashes = tuple(r.data.tags["config_hash"] for r in found)
     cell.seconds = tuple((r.info.end_time - r.info.start_time) / 1000 for r in found if r.info.end_time)
+    cell.counts = tuple(_run_counts(r) for r in found)
     scored = [pair for r in found for pair in runs.mesh_accuracies(r)]
     cell.scored = tuple((m, float(a[metric])) for m, a in scored)  # a paired comparison uses what there is
     if not missing:
         cell.meshes, cell.accs = tuple(m for m, _ in scored), np.array([a[metric] for _, a in scored])
         cell.gains = np.array([a["acc"] - a["acc_raw"] for _, a in scored])
+
+
+#: count params (`n_*`) of a fold run that learning curves read (n_train_distinct: only runs made since it exists)
+RUN_COUNTS = ("n_train_samples", "n_train_distinct", "n_epochs")
+
+
+def _run_counts(run) -> dict[str, int]:
+    return {k: int(run.data.params[k]) for k in RUN_COUNTS if k in run.data.params}
 
 
 def _fill_predictions(cell: Cell, category: str, dataset, split, spec, cache_dir: str) -> None:
@@ -340,7 +362,8 @@ def collect(
 
     `overrides` are run overrides applied after the manifest's (e.g. budget=cpu, tracking.uri=...);
     `sets` keeps only the rows whose name or category is listed (their groups lose the average row);
-    `metric` is a per-mesh column (FoldRecord.MESH_METRICS); `paired` two column keys to compare mesh by mesh."""
+    `metric` is a per-mesh column (FoldRecord.MESH_METRICS); `paired` the columns to compare mesh by mesh:
+    two column keys, or a list of such pairs (None: the manifest's `paired:` list)."""
     from hydra import compose
     from hydra.errors import HydraException
 
@@ -348,13 +371,7 @@ def collect(
 
     if metric not in FoldRecord.MESH_METRICS:
         raise ConfigError(f"report.metric={metric} is not allowed: choose one of {list(FoldRecord.MESH_METRICS)}")
-    keep = None if sets is None else {str(s) for s in sets}
-    known = {name for g in manifest.groups for s in g.sets for name in (s.name, s.category)}
-    if keep is not None and not keep <= known:
-        raise ConfigError(
-            f"report.sets: {sorted(keep - known)} name no set of {manifest.name}; its sets are "
-            f"{', '.join(s.name for g in manifest.groups for s in g.sets)}"
-        )
+    keep = _kept_sets(manifest, sets)
     stores: dict[tuple[str, str], _Runs] = {}
     datasets: dict[str, object] = {}
     rows: list[Row] = []
@@ -364,7 +381,7 @@ def collect(
             chosen = [s for s in group.sets if keep is None or s.name in keep or s.category in keep]
             if not chosen:
                 continue
-            grid = [[Cell(c, s.published[j]) for j, c in enumerate(manifest.columns)] for s in chosen]
+            grid = [[_new_cell(c, s, j) for j, c in enumerate(manifest.columns)] for s in chosen]
             for j, column in enumerate(manifest.columns):
                 if column.overrides is None:
                     continue
@@ -373,8 +390,7 @@ def collect(
                     cfg = compose("run", overrides=over)
                 except HydraException as e:
                     raise _compose_error(e, manifest, group, column, overrides) from None
-                b = cfg.budget
-                budget_text[b.name] = f"{b.faces_per_mesh or 'every'} training faces per mesh, {b.epochs} epochs"
+                _add_budget_text(budget_text, cfg.budget)
                 key = (cfg.tracking.uri, cfg.tracking.experiment)
                 if key not in stores:
                     stores[key] = _Runs(*key)
@@ -388,6 +404,8 @@ def collect(
                 dataset = datasets[dkey]
                 resolved = OmegaConf.to_container(cfg, resolve=True)  # once per column, not per fold
                 for s, cell in zip(chosen, (row[j] for row in grid)):
+                    if cell.outside:
+                        continue
                     cell.budget, cell.overrides = cfg.budget.name, tuple(over)
                     if isinstance(dataset, str):
                         cell.problem = dataset
@@ -395,47 +413,15 @@ def collect(
                         _fill_predictions(cell, s.category, dataset, cfg.split, column.predictions, cfg.paths.cache_dir)
                     else:
                         _fill(cell, s.category, dataset, cfg.split, resolved, runs, metric)
-            for s, cells in zip(chosen, grid):
-                for cell in cells:
-                    if cell.status == "ok":
-                        cell.value = float(cell.accs.mean())
-                        rng = cell_rng(seed, "set", group.name, s.name, cell.column.key)
-                        cell.ci = bootstrap_ci([cell.accs], n_boot, level, rng)
-                rows.append(Row(s.name, "set", group.name, cells))
-            if group.average and len(chosen) == len(group.sets):
-                members = [r.cells for r in rows[-len(chosen) :]]
-                rows.append(
-                    Row(
-                        group.average,
-                        "average",
-                        group.name,
-                        _averages(
-                            manifest,
-                            members,
-                            group.published_average,
-                            n_boot,
-                            level,
-                            seed,
-                            ("average", group.name, group.average),
-                        ),
-                    )
-                )
+            rows += _group_rows(manifest, group, chosen, grid, n_boot, level, seed)
     if manifest.total and keep is None:
         every = [r.cells for r in rows if r.kind == "set"]
-        rows.append(
-            Row(
-                manifest.total,
-                "total",
-                "",
-                _averages(
-                    manifest, every, manifest.published_total, n_boot, level, seed, ("total", "", manifest.total)
-                ),
-            )
-        )
+        total_id = ("total", "", manifest.total)
+        cells = _averages(manifest, every, manifest.published_total, n_boot, level, seed, total_id)
+        rows.append(Row(manifest.total, "total", "", cells))
     table = Table(manifest, rows, tuple(overrides), metric, level, budget_text)
     table.sets = None if sets is None else tuple(str(s) for s in sets)
-    if paired is not None:
-        table.paired = compare(table, *paired, n_boot=n_boot, seed=seed)
+    table.pairs = [compare(table, a, b, n_boot=n_boot, seed=seed) for a, b in _pairs_asked(manifest, paired)]
     table.refinement = [
         (c, refinement_gain(table, c.key, n_boot=n_boot, seed=seed))
         for c in table.columns
@@ -444,19 +430,77 @@ def collect(
     return table
 
 
+def _add_budget_text(texts: dict[str, str], b) -> None:
+    """What budget `b` trains on, under its name; columns that override part of one budget (a study's
+    budget.faces_per_mesh=4000) add their own text beside the others, so the header names every one."""
+    text = f"{b.faces_per_mesh or 'every'} training faces per mesh, {b.epochs} epochs"
+    if text not in texts.get(b.name, "").split(" | "):
+        texts[b.name] = f"{texts[b.name]} | {text}" if b.name in texts else text
+
+
+def _kept_sets(manifest: Manifest, sets) -> set[str] | None:
+    """report.sets as a set of names, each checked to name a set (by its name or category) of the manifest."""
+    keep = None if sets is None else {str(s) for s in sets}
+    known = {name for g in manifest.groups for s in g.sets for name in (s.name, s.category)}
+    if keep is not None and not keep <= known:
+        raise ConfigError(
+            f"report.sets: {sorted(keep - known)} name no set of {manifest.name}; its sets are "
+            f"{', '.join(s.name for g in manifest.groups for s in g.sets)}"
+        )
+    return keep
+
+
+def _new_cell(column: Column, s, j: int) -> Cell:
+    """An empty cell of (column, set `s`); one outside the column's `sets` keeps no published number either."""
+    if column.runs_on(s.name):
+        return Cell(column, s.published[j])
+    return Cell(column, None, outside=True)
+
+
+def _group_rows(manifest: Manifest, group, chosen, grid, n_boot, level, seed) -> list[Row]:
+    """A group's set rows (each complete cell's value and interval computed), then its average row when the
+    group has one and every set of it is in the table."""
+    rows = []
+    for s, cells in zip(chosen, grid):
+        for cell in cells:
+            if cell.status == "ok":
+                cell.value = float(cell.accs.mean())
+                rng = cell_rng(seed, "set", group.name, s.name, cell.column.key)
+                cell.ci = bootstrap_ci([cell.accs], n_boot, level, rng)
+        rows.append(Row(s.name, "set", group.name, cells))
+    if group.average and len(chosen) == len(group.sets):
+        row_id = ("average", group.name, group.average)
+        cells = _averages(manifest, [r.cells for r in rows], group.published_average, n_boot, level, seed, row_id)
+        rows.append(Row(group.average, "average", group.name, cells))
+    return rows
+
+
+def _pairs_asked(manifest: Manifest, paired) -> list[tuple[str, str]]:
+    """The column pairs to compare: `paired` (one pair of keys, or a list of pairs) or the manifest's."""
+    if paired is None:
+        return [tuple(p) for p in manifest.paired]
+    paired = list(paired)
+    if len(paired) == 2 and all(isinstance(k, str) for k in paired):
+        return [(paired[0], paired[1])]
+    return [(a, b) for a, b in paired]
+
+
 def compare(table: Table, a: str, b: str, *, n_boot: int = 2000, seed: int = 0) -> Paired:
     """Column `a` minus column `b` on the same test meshes (matched by mesh id): per set the mean difference
     with a paired bootstrap interval (the meshes resampled, each keeping both its accuracies), per average
     row the mean over its sets (each set resampled on its own). A set whose cell is still incomplete is
-    compared on the meshes of its finished folds, marked partial; an average needs every set complete."""
+    compared on the meshes of its finished folds, marked partial; an average needs every set complete. A set
+    where either column is n/a is no part of the comparison: an average is then over the sets both have."""
     keys = [c.key for c in table.columns]
     for key in (a, b):
         if key not in keys:
             raise ConfigError(f"report.paired: {key!r} is no column of {table.manifest.name}; its columns are {keys}")
     ia, ib = keys.index(a), keys.index(b)
 
-    def differences(row: Row) -> tuple[np.ndarray, str] | str:
+    def differences(row: Row) -> tuple[np.ndarray, str] | str | None:
         ca, cb = row.cells[ia], row.cells[ib]
+        if "n/a" in (ca.status, cb.status):
+            return None
         if "unavailable" in (ca.status, cb.status) or not (ca.scored and cb.scored):
             return f"{a}: {ca.status}, {b}: {cb.status}"
         acc_b = dict(cb.scored)
@@ -486,13 +530,17 @@ def refinement_gain(table: Table, key: str, *, n_boot: int = 2000, seed: int = 0
 
 def _paired_rows(table: Table, differences, ident: tuple[str, ...], n_boot: int, seed: int) -> list[PairedRow]:
     """One PairedRow per table row from `differences(set row)` (per-mesh differences, with what makes them
-    partial, or why there are none); an average row is the mean over its sets, defined when every one of
-    them has differences in full."""
-    out, diffs = [], {}
+    partial, or why there are none; None leaves the set out of the comparison); an average row is the mean
+    over its sets compared, defined when every one of them has differences in full, and labelled with how
+    many of its sets those are when some were left out."""
+    out, diffs, compared = [], {}, set()
     for row in table.rows:
         rng = cell_rng(seed, *ident[:1], row.kind, row.group, row.label, *ident[1:])
         if row.kind == "set":
             d = differences(row)
+            if d is None:
+                continue
+            compared.add((row.group, row.label))
             if isinstance(d, str):
                 out.append(PairedRow(row.label, row.kind, 0, why=d))
                 continue
@@ -503,15 +551,20 @@ def _paired_rows(table: Table, differences, ident: tuple[str, ...], n_boot: int,
             out.append(PairedRow(row.label, row.kind, len(d), float(d.mean()), ci, partial=partial))
         else:
             members = [r for r in table.rows if r.kind == "set" and (row.kind == "total" or r.group == row.group)]
-            ds = [diffs.get((r.group, r.label)) for r in members]
-            if any(d is None for d in ds) or not ds:
-                out.append(PairedRow(row.label, row.kind, 0, why="not every set compared"))
-                continue
-            value = float(np.mean([d.mean() for d in ds]))
-            out.append(
-                PairedRow(row.label, row.kind, sum(map(len, ds)), value, bootstrap_ci(ds, n_boot, table.level, rng))
-            )
+            kept = [r for r in members if (r.group, r.label) in compared]
+            if kept:
+                label = row.label if len(kept) == len(members) else f"{row.label} ({len(kept)} of {len(members)} sets)"
+                ds = [diffs.get((r.group, r.label)) for r in kept]
+                out.append(_paired_average(label, row.kind, ds, n_boot, table.level, rng))
     return out
+
+
+def _paired_average(label: str, kind: str, ds: list, n_boot: int, level: float, rng) -> PairedRow:
+    """The mean over sets of per-mesh differences (None: a set not compared in full), each set resampled on its own."""
+    if any(d is None for d in ds) or not ds:
+        return PairedRow(label, kind, 0, why="not every set compared")
+    value = float(np.mean([d.mean() for d in ds]))
+    return PairedRow(label, kind, sum(map(len, ds)), value, bootstrap_ci(ds, n_boot, level, rng))
 
 
 def _compose_error(e: Exception, manifest: Manifest, group, column: Column, overrides) -> Exception:
@@ -537,10 +590,14 @@ def _averages(
 ) -> list[Cell]:
     """One average cell per column over the given set rows: the mean of the set values (each set
     weighs the same, as in the paper), its interval resampling meshes within every set. `row_id`
-    (kind, group, label) with the column key seeds each cell's bootstrap."""
+    (kind, group, label) with the column key seeds each cell's bootstrap. A column n/a on any of the sets has
+    no average over them (the mean of part of the sets is not the paper's average): n/a too."""
     out = []
     for j, column in enumerate(manifest.columns):
         members = [cells[j] for cells in set_cells]
+        if any(m.outside for m in members):
+            out.append(Cell(column, None, outside=True))
+            continue
         cell = Cell(
             column, published[j], members=members if column.overrides is not None else [], budget=members[0].budget
         )

@@ -1,6 +1,7 @@
 """A table in every format the report writes: Markdown, LaTeX, HTML, CSV, and a PNG of reproduced
-vs published per set. Numbers are accuracies in %; a cell without a complete set of runs is
-printed as what it lacks, never as a number."""
+vs published per set (and the learning curves of a manifest that declares them). Numbers are accuracies
+in %; a cell without a complete set of runs is printed as what it lacks, never as a number; a cell no part
+of the study (n/a: outside its column's `sets`) as a dash."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from meshseg.report.config import METRIC_TEXT
+from meshseg.report.curves import learning_curve_figure
 from meshseg.report.table import Cell, Table, progress
 
 #: the paper's LaTeX label in a manifest's `source`, shown in headers as its bare name (no LaTeX there)
@@ -33,7 +35,10 @@ def _ours(
     escape=str,
 ) -> str:
     """The reproduced part of a cell in one format's markup: `ok` formats a value and its interval,
-    `missing` what an incomplete or unavailable cell lacks, `published` stands for a published-only column."""
+    `missing` what an incomplete or unavailable cell lacks, `published` stands for a published-only column; an
+    n/a cell (no part of the study) is a dash in every format."""
+    if cell.status == "n/a":
+        return "—"
     if cell.status == "ok":
         return ok.format(v=cell.value, lo=cell.ci[0], hi=cell.ci[1])
     if cell.status == "published":
@@ -79,8 +84,7 @@ def markdown(table: Table) -> str:
         label = row.label if row.kind == "set" else f"**{row.label}**"
         out.append(f"| {label} | " + " | ".join(_md_cell(c) for c in row.cells) + " |")
     out += ["", progress(table).text()]
-    if table.paired is not None:
-        p = table.paired
+    for p in table.pairs:
         out += [
             "",
             f"**Paired comparison: {p.a.label} − {p.b.label}** (mean per-mesh difference in points over the test "
@@ -130,7 +134,7 @@ def _raw_refined(cell: Cell, gain: float, metric: str) -> tuple[float, float]:
 
 def _refinement_md(cell: Cell, r, metric: str) -> str:
     if r.value is None:
-        return "—" if r.kind != "set" or r.why == "incomplete" else r.why
+        return "—" if r.kind != "set" or r.why in ("incomplete", "n/a") else r.why
     raw, refined = _raw_refined(cell, r.value, metric)
     return f"{raw:.2f} → {refined:.2f} ({r.value:+.2f} [{r.ci[0]:+.2f}, {r.ci[1]:+.2f}])"
 
@@ -165,15 +169,15 @@ def refinement_csv(table: Table) -> str:
 
 
 def paired_csv(table: Table) -> str:
-    """The paired comparison, one line per row."""
+    """The paired comparisons, one line per (pair, row); columns a and b name the pair."""
     buf = io.StringIO()
     w = csv.writer(buf)
     w.writerow(["row", "kind", "a", "b", "delta", "ci_low", "ci_high", "n_meshes", "why", "partial"])
-    p = table.paired
     f = lambda v: "" if v is None else f"{v:.4f}"  # noqa: E731
-    for r in p.rows:
-        ci = (f(r.ci and r.ci[0]), f(r.ci and r.ci[1]))
-        w.writerow([r.label, r.kind, p.a.key, p.b.key, f(r.value), *ci, r.n_meshes, r.why, r.partial])
+    for p in table.pairs:
+        for r in p.rows:
+            ci = (f(r.ci and r.ci[0]), f(r.ci and r.ci[1]))
+            w.writerow([r.label, r.kind, p.a.key, p.b.key, f(r.value), *ci, r.n_meshes, r.why, r.partial])
     return buf.getvalue()
 
 
@@ -223,7 +227,7 @@ def csv_text(table: Table) -> str:
                     c.folds,
                     " ".join(map(str, c.missing)),
                     c.budget or "",
-                    c.why() if c.status in ("incomplete", "unavailable") else "",
+                    c.why() if c.status in ("incomplete", "unavailable", "n/a") else "",
                     c.category or "",
                     " ".join(c.config_hashes),
                 ]
@@ -337,11 +341,12 @@ def comparison_figure(table: Table):
     x = np.arange(len(sets))
     for i, c in enumerate(cols):
         cells = [next(x_ for x_ in r.cells if x_.column.key == c.key) for r in sets]
+        studied = sum(x_.status != "n/a" for x_ in cells)  # a column's `sets` are all it has
         vals = np.array([np.nan if x_.value is None else x_.value for x_ in cells])
         pub = np.array([np.nan if x_.published is None else x_.published for x_ in cells])
         pos = x - 0.4 + width * (i + 0.5)
         done = int(np.isfinite(vals).sum())
-        label = c.label if done == len(sets) else f"{c.label} ({done}/{len(sets)} sets)"  # a partly empty table says so
+        label = c.label if done == studied else f"{c.label} ({done}/{studied} sets)"  # a partly empty table says so
         bx.bar(pos, vals, width, color=colors[c.key], label=label)
         bx.plot(pos, pub, "_", color="k", ms=max(4, 40 * width), mew=1.5)
     finite = [v for r in sets for c in r.cells for v in (c.value, c.published) if v is not None]
@@ -381,8 +386,10 @@ def write_report(table: Table, out_dir: str | Path) -> list[Path]:
         "table.csv": csv_text(table),
         "comparison.png": png_bytes(comparison_figure(table)),
     }
-    if table.paired is not None:
+    if table.pairs:
         contents["paired.csv"] = paired_csv(table)
+    if table.manifest.curves is not None:
+        contents["learning_curve.png"] = png_bytes(learning_curve_figure(table))
     if _has_refinement(table):
         contents["refinement.csv"] = refinement_csv(table)
     paths = []

@@ -1,0 +1,271 @@
+"""A study manifest's keys (experiments/budget_study.yaml): a column's `sets:` (its other cells n/a: a dash,
+not counted, never launched), the manifest's `paired:` blocks (report.paired replaces them) and `curves:` (the
+learning-curve figure, placed by the runs' logged counts). On a hand-made two-mesh L-PSB folder: labellings
+scored from disk and fold runs logged by hand, so every number is computed by hand."""
+
+import csv
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from conftest import REPO
+from omegaconf import OmegaConf
+from test_predictions_column import MESH1, MESH2
+
+from meshseg.report import ManifestError, collect, load_manifest, report
+from meshseg.report.config import hydra_scope
+from meshseg.report.curves import curve_panels
+from meshseg.report.table import progress
+from meshseg.report.write import write_report
+from meshseg.reproduce import MissingCell, missing_cells, reproduce
+from meshseg.tracking import Tracker
+
+
+@pytest.fixture
+def tiny(tmp_path, monkeypatch):
+    """An L-PSB-shaped folder (category Tiny, meshes 1 and 2), labellings of them scoring 80 and 66.67 (pred)
+    and 100 and 66.67 (pred2), and run overrides that point the runs' store into tmp_path."""
+    d = tmp_path / "db/Tiny"
+    d.mkdir(parents=True)
+    (d / "1.off").write_text(MESH1)
+    (d / "1_labels.txt").write_text("head\n1\nbody\n2\n")
+    (d / "2.off").write_text(MESH2)
+    (d / "2_labels.txt").write_text("head\n1 2\nbody\n3\n")
+    for name, one, two in (
+        ("pred", "body\n1 2\n", "head\n1\nbody\n2 3\n"),
+        ("pred2", "head\n1\nbody\n2\n", "head\n1 2 3\n"),
+    ):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "1.lab").write_text(one)
+        (tmp_path / name / "2.lab").write_text(two)
+    monkeypatch.setenv("MESHSEG_CACHE_DIR", str(tmp_path / "cache"))
+    return tmp_path
+
+
+def run_args(tiny) -> list[str]:
+    return [f"paths.mlflow_dir={tiny / 'mlruns'}"]
+
+
+def study(tiny, columns, **keys) -> Path:
+    """Manifest `study`: sets One and Two, both the category Tiny (published 90 and 91 in every column)."""
+    n = len(columns)
+    doc = {
+        "name": "study",
+        "title": "t",
+        "overrides": ["dataset=psb", f"dataset.root={tiny / 'db'}", "split=loo"],
+        "columns": columns,
+        "groups": [
+            {
+                "name": "g",
+                "average": "Average",
+                "published_average": [90.5] * n,
+                "sets": [
+                    {"name": "One", "category": "Tiny", "published": [90.0] * n},
+                    {"name": "Two", "category": "Tiny", "published": [91.0] * n},
+                ],
+            }
+        ],
+        **keys,
+    }
+    path = tiny / "study.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+def labellings(tiny, key: str, folder: str, **more) -> dict:
+    return {"key": key, "label": key, "predictions": {"path": str(tiny / folder), "format": "psb_labels"}, **more}
+
+
+def read_csv(path: Path) -> list[dict]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def line(md: str, start: str) -> str:
+    return next(x for x in md.splitlines() if x.startswith(start))
+
+
+# --- sets: -----------------------------------------------------------------------------------------------
+
+
+def test_a_column_restricted_to_some_sets_is_na_elsewhere_and_never_launched(tiny):
+    cols = [labellings(tiny, "K", "pred"), {"key": "R", "label": "R", "overrides": ["model=cnn1d"], "sets": ["Two"]}]
+    path = study(tiny, cols)
+    table = collect(load_manifest(path), run_args(tiny), n_boot=50)
+    status = {(r.label, c.column.key): c.status for r in table.rows for c in r.cells}
+    assert status == {
+        ("One", "K"): "ok",
+        ("One", "R"): "n/a",
+        ("Two", "K"): "ok",
+        ("Two", "R"): "incomplete",  # an empty store: both leave-one-out folds missing
+        ("Average", "K"): "ok",
+        ("Average", "R"): "n/a",  # R covers part of the group: no average
+    }
+    p = progress(table)
+    assert (p.cells, p.cells_done, p.runs_missing, p.unavailable) == (1, 0, 2, 0)  # the n/a cell is not counted
+    (m,) = missing_cells(table)
+    assert m == MissingCell("Two", "R", m.overrides, "Tiny", (0, 1))
+    dry = reproduce(path, [*run_args(tiny), "report.dry_run=true", "report.results=null"])
+    assert [(c.row, c.column, c.folds) for c in dry.launched] == [("Two", "R", (0, 1))]
+
+    out = tiny / "out"
+    write_report(table, out)
+    md = (out / "table.md").read_text()
+    assert line(md, "| One |").endswith("| — |") and line(md, "| **Average** |").endswith("| — |")
+    assert line(md, "| Two |").endswith("| — (0/2) / 91.00 |")
+    assert "0 of 1 cells complete; 2 fold runs missing." in md
+    tex, html = (out / "table.tex").read_text(), (out / "table.html").read_text()
+    assert line(tex, "One &").endswith(r"& — & -- & -- \\")
+    assert "<td>—</td><td>—</td><td>—</td></tr>" in html
+    (one,) = [r for r in read_csv(out / "table.csv") if (r["row"], r["column"]) == ("One", "R")]
+    assert (one["status"], one["reproduced"], one["published"], one["delta"]) == ("n/a", "", "", "")
+    assert one["why"] == "R is run on Two only"
+
+
+def test_a_columns_sets_name_sets_of_the_manifest(tiny):
+    cols = [labellings(tiny, "K", "pred", sets=["Two", "Three", "Four"])]
+    with pytest.raises(
+        ManifestError, match=r"column K: sets \['Three', 'Four'\] name no set of the manifest; its sets: One, Two$"
+    ):
+        load_manifest(study(tiny, cols))
+    # a set may be named by its category, as report.sets takes it: Table 2's FourLeg is the set Fourleg
+    budget = {c.key: c.sets for c in load_manifest(REPO / "experiments/budget_study.yaml").columns}
+    assert budget["1B_s1"] == ("Vase", "Cup", "Hand", "Fourleg") and budget["1B_4k"] == ("Vase", "Hand")
+    assert budget["1B"] is None
+
+
+@pytest.mark.parametrize(
+    "keys, problem",
+    [
+        ({"paired": [["A", "X"]]}, r"paired \['A', 'X'\]: \['X'\] name no column; the columns are A, B$"),
+        ({"paired": [["A", "B", "A"]]}, r"paired: \[\['A', 'B', 'A'\]\] are not pairs"),
+        ({"paired": "A"}, "paired: expected a list of"),
+        ({"curves": {"x": "epochs", "series": {"s": ["A"]}}}, "curves: expected"),
+        ({"curves": {"x": "samples", "series": {"s": ["A", "Z"]}}}, r"curves series s: \['Z'\] name no column"),
+    ],
+)
+def test_bad_pairs_and_curves_are_refused(tiny, keys, problem):
+    cols = [labellings(tiny, "A", "pred2"), labellings(tiny, "B", "pred")]
+    with pytest.raises(ManifestError, match=problem):
+        load_manifest(study(tiny, cols, **keys))
+
+
+# --- paired: ---------------------------------------------------------------------------------------------
+
+
+def pair_rows(path: Path) -> list[tuple]:
+    return [(r["row"], r["a"], r["b"], r["delta"], r["n_meshes"]) for r in read_csv(path)]
+
+
+def test_the_manifests_pairs_make_one_block_each_and_report_paired_replaces_them(tiny):
+    """A scores 100 and 66.67 on meshes 1 and 2, B 80 and 66.67: A - B is 20 and 0 mesh by mesh, 10 on
+    each set. C is A on set One only: C - B is compared on One, and its average says so."""
+    cols = [labellings(tiny, "A", "pred2"), labellings(tiny, "B", "pred"), labellings(tiny, "C", "pred2", sets=["One"])]
+    path = study(tiny, cols, paired=[["A", "B"], ["C", "B"]])
+    args = [*run_args(tiny), "report.log=false", "report.n_boot=400", "report.results=null"]
+    table, files, _ = report(path, [*args, f"report.out_dir={tiny / 'out'}"])
+    assert [(p.a.key, p.b.key) for p in table.pairs] == [("A", "B"), ("C", "B")]
+    ab, cb = table.pairs
+    assert [(r.label, r.value, r.n_meshes) for r in ab.rows] == [
+        ("One", 10.0, 2),
+        ("Two", 10.0, 2),
+        ("Average", 10.0, 4),
+    ]
+    assert [(r.label, r.value, r.n_meshes) for r in cb.rows] == [("One", 10.0, 2), ("Average (1 of 2 sets)", 10.0, 2)]
+    assert ab.rows[0].ci == pytest.approx((0.0, 20.0)) and cb.rows[1].ci == pytest.approx((0.0, 20.0))  # {20, 0}
+    md = (tiny / "out/study/table.md").read_text()
+    assert "**Paired comparison: A − B**" in md and "**Paired comparison: C − B**" in md
+    assert "| **Average (1 of 2 sets)** | +10.00 [+0.00, +20.00] | 2 |" in md
+    assert pair_rows(tiny / "out/study/paired.csv") == [
+        ("One", "A", "B", "10.0000", "2"),
+        ("Two", "A", "B", "10.0000", "2"),
+        ("Average", "A", "B", "10.0000", "4"),
+        ("One", "C", "B", "10.0000", "2"),
+        ("Average (1 of 2 sets)", "C", "B", "10.0000", "2"),
+    ]
+
+    table, _, _ = report(path, [*args, "report.paired=[B,A]", f"report.out_dir={tiny / 'given'}"])
+    assert [(p.a.key, p.b.key) for p in table.pairs] == [("B", "A")]
+    assert pair_rows(tiny / "given/study/paired.csv") == [
+        ("One", "B", "A", "-10.0000", "2"),
+        ("Two", "B", "A", "-10.0000", "2"),
+        ("Average", "B", "A", "-10.0000", "4"),
+    ]
+    table, _, _ = report(path, [*args, "report.paired=[[C,B],[A,B]]", f"report.out_dir={tiny / 'two'}"])
+    assert [(p.a.key, p.b.key) for p in table.pairs] == [("C", "B"), ("A", "B")]
+    table, files, _ = report(path, [*args, "report.paired=[]", f"report.out_dir={tiny / 'none'}"])
+    assert table.pairs == [] and not (tiny / "none/study/paired.csv").exists()
+    # report.columns: a pair loses its block with either of its columns
+    table, _, _ = report(path, [*args, "report.columns=[C,B]", f"report.out_dir={tiny / 'cols'}"])
+    assert [(p.a.key, p.b.key) for p in table.pairs] == [("C", "B")]
+
+
+# --- curves: ---------------------------------------------------------------------------------------------
+
+
+def log_fold_runs(tiny, path: Path, key: str, counts: list[dict], acc: float) -> None:
+    """FINISHED fold runs of column `key` on category Tiny, found by the config hash the report computes, each
+    logging `counts` (one dict per leave-one-out fold) and `acc` on its test mesh."""
+    from hydra import compose
+
+    from meshseg.data.datasets import build_dataset
+    from meshseg.data.splits import folds_for
+    from meshseg.tracking import fold_identity
+
+    m = load_manifest(path)
+    (column,) = [c for c in m.columns if c.key == key]
+    with hydra_scope():
+        cfg = compose("run", overrides=[*m.cell_overrides(m.groups[0], column), *run_args(tiny)])
+    resolved = OmegaConf.to_container(cfg, resolve=True)
+    dataset = build_dataset(cfg.dataset)
+    tracker = Tracker(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_dir)
+    for fold, n in zip(folds_for(dataset, "Tiny", cfg.split), counts, strict=True):
+        _, chash = fold_identity(resolved, "Tiny", fold, dataset.data_hash)
+        table = tiny / f"{chash}/per_mesh.csv"
+        table.parent.mkdir()
+        table.write_text("mesh,faces,area,acc_raw,acc\n" + "".join(f"{m},2,1.0,{acc},{acc}\n" for m in fold.test))
+        with tracker.run(f"{key} {fold.index}", {"config_hash": chash}, n) as run_id:
+            tracker.client.log_artifact(run_id, str(table))
+
+
+def test_the_learning_curve_places_each_cell_at_its_runs_samples_seen(tiny):
+    """1B at 3 and 2 samples x 15 epochs (x = 37.5), 1B_4k (set Two only) at 12 x 15 and 8 x 16 (x = 154):
+    the points' x are the runs' n_train_samples x n_epochs, their mean over the cell's runs."""
+    cols = [
+        {"key": "1B", "label": "1B", "overrides": ["model=cnn1d", "branches=1"]},
+        {"key": "1B_4k", "label": "1B 4k", "overrides": ["model=cnn1d", "branches=1", "budget.faces_per_mesh=4000"]},
+    ]
+    cols[1]["sets"] = ["Two"]
+    path = study(tiny, cols, curves={"x": "samples", "series": {"1B": ["1B", "1B_4k"]}})
+    one = [{"n_train_samples": 3, "n_epochs": 15}, {"n_train_samples": 2, "n_epochs": 15}]
+    four = [{"n_train_samples": 12, "n_epochs": 15, "n_train_distinct": 20}, {"n_train_samples": 8, "n_epochs": 16}]
+    log_fold_runs(tiny, path, "1B", one, 0.9)
+    log_fold_runs(tiny, path, "1B_4k", four, 0.95)
+    table = collect(load_manifest(path), run_args(tiny), n_boot=50)
+    panels = curve_panels(table)
+    assert [p.set for p in panels] == ["One", "Two"]
+    assert [(q.column, q.x, q.value) for q in panels[0].lines["1B"]] == [("1B", 37.5, pytest.approx(90.0))]
+    assert [(q.column, q.x) for q in panels[1].lines["1B"]] == [("1B", 37.5), ("1B_4k", 154.0)]
+    assert panels[1].lines["1B"][1].value == pytest.approx(95.0)
+    assert [p.published for p in panels] == [{"1B": 90.0}, {"1B": 91.0}]  # the series' first column's
+    out = tiny / "out"
+    assert out / "learning_curve.png" in write_report(table, out)
+    budget = "Budget: cpu (1000 training faces per mesh, 15 epochs | 4000 training faces per mesh, 15 epochs);"
+    assert budget in (out / "table.md").read_text()  # both budgets the columns train on, not the last one
+    import matplotlib.image
+
+    png = matplotlib.image.imread(out / "learning_curve.png")
+    assert png.ndim == 3 and png[..., :3].std() > 0.05
+
+    # x: distinct = the faces any epoch trained on; a run from before n_train_distinct counts n_train_samples
+    curves = {"x": "distinct", "series": {"1B": ["1B", "1B_4k"]}}
+    distinct = collect(load_manifest(study(tiny, cols, curves=curves)), run_args(tiny), n_boot=50)
+    (p,) = [p for p in curve_panels(distinct) if p.set == "Two"]
+    assert [q.x for q in p.lines["1B"]] == [2.5, 14.0]
+    # no `curves:`, no figure
+    plain = collect(load_manifest(study(tiny, cols)), run_args(tiny), n_boot=50)
+    assert curve_panels(plain) == [] and not any(
+        f.name == "learning_curve.png" for f in write_report(plain, tiny / "p")
+    )
+    assert np.isclose(table.rows[1].cells[1].value, 95.0)
