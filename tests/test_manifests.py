@@ -16,7 +16,7 @@ from meshseg.data.splits import split_name
 
 EXPERIMENTS = REPO / "experiments"
 PAPER = Path(__file__).resolve().parents[1].parent / "shared/paper/george2018_multibranch_1dcnn.tex"
-MANIFESTS = sorted(EXPERIMENTS.glob("*.yaml"))
+MANIFESTS = sorted(p for p in EXPERIMENTS.glob("*.yaml") if p.stem != "claims")  # claims.yaml: tests/test_claims.py
 EXPECTED = {
     "table1_psb_loo",
     "table2_psb_5fold",
@@ -141,7 +141,8 @@ def test_schema(path):
     assert path.read_text().startswith("#"), "header comment"
     assert m["name"] == path.stem
     assert isinstance(m["title"], str) and m["title"] and isinstance(m["source"], str) and m["source"]
-    assert set(m) <= {"name", "title", "source", "note", "compared_with", "overrides", "columns", "groups", "total"}
+    top = {"name", "title", "source", "note", "compared_with", "overrides", "columns", "groups", "total"}
+    assert set(m) <= top | {"paired", "curves"}  # a study's paired blocks and learning curves
     assert m.get("compared_with", "Published") in ("Published", "Reference")
 
     def check_overrides(ovs, nullable=False):
@@ -159,7 +160,7 @@ def test_schema(path):
         if "predictions" in c:  # a column scored from labellings on disk: the paper has no number for it
             assert set(c) == {"key", "label", "predictions"} and set(c["predictions"]) == {"path", "format"}, c
             continue
-        assert set(c) == {"key", "label", "overrides"}, c
+        assert {"key", "label", "overrides"} <= set(c) <= {"key", "label", "overrides", "sets"}, c
         assert isinstance(c["key"], str) and isinstance(c["label"], str)
         check_overrides(c["overrides"], nullable=True)
     n = len(cols)
@@ -178,6 +179,16 @@ def test_schema(path):
             assert all(v is None or 0 <= v <= 100 for v in s["published"])
     if "total" in m:
         assert set(m["total"]) == {"label", "published"} and len(m["total"]["published"]) == n
+    keys = {c["key"] for c in cols}
+    assert all(len(p) == 2 and set(p) <= keys for p in m.get("paired", []))
+
+
+@pytest.mark.parametrize("path", MANIFESTS, ids=lambda p: p.stem)
+def test_every_manifest_loads(path):
+    """The loader's own checks too (a column's `sets` name sets of the manifest, pairs and curves name columns)."""
+    from meshseg.report import load_manifest
+
+    assert load_manifest(path).name == path.stem
 
 
 @pytest.mark.parametrize("stem", sorted(PAPER_TABLES))

@@ -1,0 +1,161 @@
+"""The claims report: verdicts by the rule experiments/claims.yaml states, on hand-made columns."""
+
+import csv
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from meshseg.report.claims import Claim, build_report, decide, judge, load_claims, summary_table
+from meshseg.report.manifest import Column, Group, Manifest, ManifestError, Set, load_manifest
+from meshseg.report.table import Cell, Row, Table
+
+REPO = Path(__file__).resolve().parents[1]
+A, B, P = Column("a", "A", ("x=1",)), Column("b", "B", ("x=2",)), Column("p", "P", None)
+
+
+def table(sets: dict[str, tuple[list[float], list[float]]], missing: dict[str, int] | None = None) -> Table:
+    """A manifest of columns a, b (runs) and p (published only) whose set s has per-mesh accuracies
+    sets[s] = (a's, b's) on meshes m0, m1, ...; `missing` folds of column a per set (of 5)."""
+    missing = missing or {}
+    rows = []
+    for name, (xa, xb) in sets.items():
+        cells = []
+        for col, xs, pub in ((A, xa, 95.0), (B, xb, 93.0)):
+            gone = tuple(range(missing.get(name, 0))) if col is A else ()
+            scored = tuple((f"m{i}", float(x)) for i, x in enumerate(xs))
+            cell = Cell(col, pub, scored=scored, folds=5, missing=gone, budget="cpu")
+            if not gone:
+                cell.accs, cell.meshes, cell.value = (
+                    np.array(xs, float),
+                    tuple(m for m, _ in scored),
+                    float(np.mean(xs)),
+                )
+                cell.gains = np.array(xs, float) - np.array(xb, float)  # stands in for refined - raw
+            cells.append(cell)
+        cells.append(Cell(P, 94.0))
+        rows.append(Row(name, "set", "G", cells))
+    groups = (Group("G", (), tuple(Set(s, s, (95.0, 93.0, 94.0)) for s in sets), None, (None, None, None)),)
+    m = Manifest("t", "t", "", "", (), (A, B, P), groups, None, (None, None, None), Path("t.yaml"))
+    return Table(m, rows, (), "acc", 0.95)
+
+
+def claim(test="mean", **kw) -> Claim:
+    return Claim("c", "a beats b", "§4", "t", "a", kw.pop("b", "b"), test, **kw)
+
+
+RNG = np.random.default_rng(0)
+
+
+def noisy(center: float, n: int = 20) -> tuple[list[float], list[float]]:
+    b = RNG.uniform(80, 95, n)
+    return list(b + center + RNG.normal(0, 0.3, n)), list(b)
+
+
+def test_a_consistent_positive_difference_is_reproduced_and_its_reverse_contradicted():
+    t = table({"s1": noisy(1.0), "s2": noisy(1.5)})
+    v = judge(claim(), t)
+    assert v.verdict == "reproduced" and v.ci[0] > 0 and v.budget == "cpu" and v.published == pytest.approx(2.0)
+    flipped = table({"s1": noisy(-1.0), "s2": noisy(-1.5)})
+    assert judge(claim(), flipped).verdict == "contradicted"
+
+
+def test_differences_centred_on_zero_are_inconclusive():
+    t = table({"s1": noisy(0.0, 40), "s2": noisy(0.0, 40)})
+    v = judge(claim(), t)
+    assert v.verdict == "inconclusive" and v.ci[0] < 0 < v.ci[1]
+
+
+def test_one_set_against_an_every_set_claim_makes_it_partly_and_names_the_set():
+    t = table({"s1": noisy(2.0), "s2": noisy(2.0), "s3": noisy(-1.0)})
+    v = judge(claim("every_set"), t)
+    assert v.verdict == "partly" and v.against == ["s3*"]  # * : s3's own interval excludes 0
+    assert "against: s3*" in v.verdict_text
+    assert judge(claim("every_set", sets=("s1", "s2")), t).verdict == "reproduced"  # the claim's own sets only
+
+
+def test_a_missing_fold_is_not_yet_run_and_counted():
+    t = table({"s1": noisy(1.0), "s2": noisy(1.0), "s3": noisy(1.0)}, missing={"s2": 2, "s3": 1})
+    v = judge(claim(), t)
+    assert v.verdict == "not yet run" and v.missing_runs == 3 and v.value is None
+    assert v.verdict_text == "not yet run (3 runs missing)"
+
+
+def test_the_paired_difference_by_hand():
+    """Two sets: s1 meshes a - b = +1, +3 (mean 2); s2: -1, 0, +4 (mean 1). The claim's value is the mean of
+    the set means, 1.5, not the mesh mean 1.4; each set's mean is its meshes' mean."""
+    t = table({"s1": ([91.0, 93.0], [90.0, 90.0]), "s2": ([80.0, 85.0, 94.0], [81.0, 85.0, 90.0])})
+    v = judge(claim(), t, n_boot=4000)
+    assert [s.value for s in v.sets] == [pytest.approx(2.0), pytest.approx(1.0)]
+    assert [s.n_meshes for s in v.sets] == [2, 3]
+    assert v.value == pytest.approx(1.5)
+    # resampling meshes within sets: s1's mean is 1, 2 or 3 and s2's lies in [-1, 4], so the interval lies in [0, 3.5]
+    assert 0.0 <= v.ci[0] < 1.5 < v.ci[1] <= 3.5
+
+
+def test_equal_against_a_published_only_column_and_refinement():
+    t = table({"s1": ([94.2] * 10, [90.0] * 10), "s2": ([93.9] * 10, [90.0] * 10)})
+    # a's mean 94.05 against P's published 94.0: +0.05, its interval inside +-0.5
+    v = judge(claim("equal", b="p", margin=0.5), t)
+    assert v.verdict == "reproduced" and v.value == pytest.approx(0.05) and v.published == pytest.approx(1.0)
+    assert judge(claim("equal", b="b", margin=0.5), t).verdict == "contradicted"  # 4 points apart
+    r = judge(claim("refinement", b=None), t)  # gains stand in as a - b here: +4.2, +3.9
+    assert r.verdict == "reproduced" and r.value == pytest.approx(4.05) and r.published is None
+
+
+def test_decide_most_sets_needs_its_share():
+    from meshseg.report.claims import SetDiff
+
+    sets = [SetDiff(f"s{i}", 1.0, (0.5, 1.5), 5) for i in range(4)] + [SetDiff("s4", -0.2, (-0.5, 0.1), 5)]
+    assert decide("most_sets", (0.3, 1.2), sets, 0.5, 0.75) == ("reproduced", ["s4"])  # 4 of 5 >= 75 %
+    assert decide("most_sets", (0.3, 1.2), sets, 0.5, 0.9) == ("partly", ["s4"])
+    assert decide("every_set", (-0.1, 1.2), sets, 0.5, 0.75) == ("inconclusive", ["s4"])
+
+
+def test_a_bad_claims_file_is_refused_with_its_name(tmp_path):
+    bad = tmp_path / "claims.yaml"
+    bad.write_text("claims:\n  - {id: '1', text: x, table: t, a: a, b: b, test: better}\n")
+    with pytest.raises(ManifestError, match=r"claims.yaml: claims\[0\] \(1\): test 'better' is not one of"):
+        load_claims(bad)
+    bad.write_text("claims:\n  - {id: '1', text: x, table: t, a: a}\n")
+    with pytest.raises(ManifestError, match=r"b is required, except with test: refinement"):
+        load_claims(bad)
+
+
+def test_every_shipped_claim_names_columns_and_sets_its_manifest_has():
+    claims = load_claims(REPO / "experiments/claims.yaml")
+    assert {c.id for c in claims.claims} >= {"1", "2a", "3", "4", "5a", "6a", "7a", "8", "9", "10", "11", "12a"}
+    for c in claims.claims:
+        m = load_manifest(REPO / "experiments" / f"{c.table}.yaml")
+        keys = {col.key for col in m.columns}
+        assert c.a in keys and (c.b is None or c.b in keys), c
+        group = next(g for g in m.groups if g.name == (c.group or m.groups[0].name))
+        assert c.sets is None or set(c.sets) <= {s.name for s in group.sets}, c
+
+
+def test_build_report_judges_tables_too():
+    from meshseg.report.claims import ClaimsFile, TableSpec
+
+    t = table({"s1": noisy(1.0), "s2": noisy(1.0)})
+    cf = ClaimsFile("claims", "C", "rule", (), (claim(),), (TableSpec("t", "Table T"),), 1.0, 2.0, {}, Path("c.yaml"))
+    report = build_report(cf, {"t": t})
+    assert [v.verdict for v in report.verdicts] == ["reproduced"]
+    assert report.tables[0].verdict == "not yet run"  # the hand-made table has no average row
+    assert summary_table(report).splitlines()[2].startswith("| c | a beats b (§4) | +2.00 |")
+
+
+def test_the_readme_claims_table_matches_reports_claims_csv():
+    """README "Does the paper reproduce?" is the claims report's table: same claims, numbers and verdicts."""
+    readme = (REPO / "README.md").read_text()
+    block = re.search(r"<!-- claims:begin -->\n(.*?)<!-- claims:end -->", readme, re.S)
+    assert block, "README lacks the claims table between <!-- claims:begin --> and <!-- claims:end -->"
+    rows = [line.split(" | ") for line in block.group(1).splitlines() if re.match(r"\| \w+ \|", line)]
+    shipped = list(csv.DictReader((REPO / "reports/claims/claims.csv").open()))
+    assert [r[0].strip("| ") for r in rows] == [s["id"] for s in shipped]
+    for r, s in zip(rows, shipped):
+        assert r[4].split(" (")[0].split(";")[0] == s["verdict"], (r, s)
+        if s["reproduced"]:
+            assert r[3].startswith(f"{float(s['reproduced']):+.2f} ["), (r, s)
+        else:
+            assert r[3] == "—"
