@@ -145,15 +145,24 @@ def load_run_model(tracker, run_id: str) -> tuple[FoldModel, object]:
                 f"run_id={run_id} ({run.info.run_name}) has no {ARTIFACT}/ artifact: it ran with "
                 "tracking.log_model=false, was imported from results/, or ran before runs kept their models"
             )
-        return FoldModel.load(Path(folder)), run
+        try:
+            return FoldModel.load(Path(folder)), run
+        except MeshsegError as e:  # name the run, not the temporary download it came through
+            why = str(e).split(": ", 1)[-1]
+            raise TrackingError(f"run_id={run_id} ({run.info.run_name}): its {ARTIFACT}/ artifact {why}") from None
 
 
 def predict(cfg) -> dict:
     """Label `cfg.mesh` with run `cfg.run_id`'s model; write `cfg.out` (and `cfg.render`). Returns a summary."""
-    from meshseg.tracking import Tracker
+    from meshseg.data.io import check_output_file
+    from meshseg.tracking import Tracker, check_store_exists
 
     if not cfg.get("run_id") or not cfg.get("mesh") or not cfg.get("out"):
         raise ConfigError("meshseg.predict needs run_id=<run id> mesh=<file .off|.obj> out=<labels file>")
+    check_output_file(cfg.out, "out")  # before any work: a bad output path is no reason to label the mesh first
+    if cfg.get("render"):
+        check_output_file(cfg.render, "render")
+    check_store_exists(cfg.tracking.uri)
     mesh = read_mesh(str(cfg.mesh))
     model, run = load_run_model(
         Tracker(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_dir), cfg.run_id

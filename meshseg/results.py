@@ -21,14 +21,17 @@ from __future__ import annotations
 import csv
 import json
 import logging
+import math
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from omegaconf import OmegaConf
 
+from meshseg.data.io import check_output_folder
 from meshseg.errors import ConfigError, MeshsegError
-from meshseg.tracking import FoldRecord, Tracker, fold_identity
+from meshseg.tracking import FoldRecord, Tracker, check_store_exists, fold_identity
 
 log = logging.getLogger(__name__)
 
@@ -74,9 +77,74 @@ def record_of(tracker: Tracker, run) -> dict:
     }
 
 
+#: what a dataset, category or config hash may be called where it names a folder or file under results/
+_PLAIN = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.\-]*")
+#: the tags a record must carry: the run's identity (what its config hash was computed from) and its place
+REQUIRED_TAGS = ("config_hash", "dataset", "category", "fold", "data_hash", "overrides", "fold_ids", "model")
+
+
+def plain_name(value) -> bool:
+    """A single path component that stays where it is put: no separator, no `..`, no leading dot."""
+    return isinstance(value, str) and _PLAIN.fullmatch(value) is not None and ".." not in value
+
+
 def record_path(root: Path, record: dict) -> Path:
+    """results/<dataset>/<category>/<config hash>.json, refused unless it stays under `root`."""
     t = record["tags"]
-    return root / t["dataset"] / t["category"] / f"{record['config_hash']}.json"
+    parts = (t.get("dataset"), t.get("category"), record.get("config_hash"))
+    if not all(plain_name(x) for x in parts):
+        raise ConfigError(f"record {parts!r}: dataset, category and config hash must be plain names")
+    path = root / parts[0] / parts[1] / f"{parts[2]}.json"
+    if not path.resolve().is_relative_to(root.resolve()):
+        raise ConfigError(f"record {parts!r}: {path} is outside {root}")
+    return path
+
+
+def _number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def check_record(record: dict) -> str | None:
+    """Why a record cannot be imported as it is, or None: every part checked before any run is created."""
+    tags, chash = record.get("tags"), record.get("config_hash")
+    if not isinstance(chash, str) or not re.fullmatch(r"[0-9a-f]{16}", chash):
+        return f"config_hash {chash!r} is not 16 hex digits"
+    if not isinstance(tags, dict) or not all(isinstance(k, str) and isinstance(v, str) for k, v in tags.items()):
+        return "tags must map names to strings"
+    lacking = [k for k in REQUIRED_TAGS if k not in tags]
+    if lacking:
+        return f"tags lack {lacking}"
+    if tags["config_hash"] != chash:
+        return f"its tags name config hash {tags['config_hash']}, the record {chash}"
+    for key in ("dataset", "category"):
+        if not plain_name(tags[key]):
+            return f"tags.{key} {tags[key]!r} is not a plain name"
+    config = record.get("config")
+    if not isinstance(config, dict):
+        return "config is not a mapping"
+    if config.get("category") != tags["category"] or str(config.get("fold")) != tags["fold"]:
+        return (
+            f"config (category {config.get('category')!r}, fold {config.get('fold')!r}) differs from its tags "
+            f"(category {tags['category']!r}, fold {tags['fold']!r})"
+        )
+    metrics, counts = record.get("metrics"), record.get("counts", {})
+    if not isinstance(metrics, dict) or not all(isinstance(k, str) and _number(v) for k, v in metrics.items()):
+        return "metrics must map names to finite numbers"
+    if not isinstance(counts, dict) or not all(isinstance(v, int) and not isinstance(v, bool) for v in counts.values()):
+        return "counts must map names to integers"
+    rows = record.get("per_mesh")
+    if not isinstance(rows, list) or not rows:
+        return "per_mesh must be a non-empty list of rows"
+    for i, row in enumerate(rows):
+        if not isinstance(row, dict) or not isinstance(row.get("mesh"), str):
+            return f"per_mesh[{i}] has no mesh id"
+        bad = [k for k in FoldRecord.PER_MESH_COLUMNS[1:] if not _number(row.get(k))]
+        if bad:
+            return f"per_mesh[{i}] ({row['mesh']}): {bad} missing or not numbers"
+    for key in ("start_time", "end_time"):
+        if not (isinstance(record.get(key), int) or (key == "end_time" and record.get(key) is None)):
+            return f"{key} {record.get(key)!r} is not a time in ms"
+    return None
 
 
 def write_record(path: Path, record: dict) -> bool:
@@ -98,7 +166,13 @@ def export(tracker: Tracker, out: Path) -> tuple[int, int]:
     for run in tracker.runs("attributes.status = 'FINISHED'"):
         if "config_hash" not in run.data.tags:
             continue
-        if write_record(record_path(out, rec := record_of(tracker, run)), rec):
+        rec = record_of(tracker, run)
+        try:
+            path = record_path(out, rec)
+        except ConfigError as e:  # a run whose names would write outside `out`: never exported
+            log.warning("not exported: run %s: %s", run.info.run_id, e)
+            continue
+        if write_record(path, rec):
             written += 1
         else:
             unchanged += 1
@@ -157,12 +231,16 @@ class ImportReport:
 
 
 def import_records(tracker: Tracker, root: Path) -> ImportReport:
-    """Recreate the records under `root` as FINISHED runs of the tracker's experiment (see module doc)."""
-    from mlflow.entities import Metric, Param
-
+    """Recreate the records under `root` as FINISHED runs of the tracker's experiment (see module doc).
+    Each record is checked whole first; its run is claimed like a fold run's (so two imports, or an import
+    beside a sweep, never make two FINISHED runs of one config), and removed again if it cannot be made."""
     report = ImportReport()
     have = {r.data.tags.get("config_hash") for r in tracker.runs("attributes.status = 'FINISHED'")}
     for path, record in load_records(root):
+        why = check_record(record)
+        if why is not None:
+            report.refused.append((path, why))
+            continue
         chash = record["config_hash"]
         if chash in have:
             report.present.append(path)
@@ -172,24 +250,36 @@ def import_records(tracker: Tracker, root: Path) -> ImportReport:
             why = "it carries no overrides and fold ids to check it by" if now is None else f"today it is {now}"
             report.refused.append((path, f"config hash {chash} is stale: {why}"))
             continue
-        tags = {**record["tags"], "imported_from": str(path)}
-        run = tracker.client.create_run(
-            tracker.experiment_id, start_time=record["start_time"], tags=tags, run_name=run_name(record["tags"])
-        )
-        run_id = run.info.run_id
-        metrics, counts = FoldRecord.upgrade(record["metrics"])  # records exported under earlier names too
-        counts.update(record.get("counts", {}))
-        params = {**FoldRecord.params(record["config"]), **counts}
-        params = [Param(k, str(v)[:6000]) for k, v in params.items()]
-        t = record["end_time"] or record["start_time"]
-        metrics = [Metric(k, float(v), t, 0) for k, v in metrics.items()]
-        for i in range(0, max(len(params), len(metrics)), 100):
-            tracker.client.log_batch(run_id, metrics=metrics[i : i + 100], params=params[i : i + 100])
-        tracker.log_fold(run_id, OmegaConf.to_yaml(OmegaConf.create(record["config"])), record["per_mesh"], None)
-        tracker.client.set_terminated(run_id, "FINISHED", end_time=record["end_time"])
+        tags = {**record["tags"], "config_hash": chash, "imported_from": str(path)}
+        run_id, holder = tracker.claim(run_name(record["tags"]), tags, start_time=record["start_time"])
+        if run_id is None:  # another import, or a sweep, holds this config
+            report.present.append(path)
+            continue
+        try:
+            _fill(tracker, run_id, record)
+        except BaseException:
+            tracker.client.set_terminated(run_id, "KILLED")
+            tracker.client.delete_run(run_id)  # no half-made run stays
+            raise
         have.add(chash)
         report.imported.append(path)
     return report
+
+
+def _fill(tracker: Tracker, run_id: str, record: dict) -> None:
+    """A claimed run made into the record's FINISHED run: params, metrics, config and per-mesh table."""
+    from mlflow.entities import Metric, Param
+
+    metrics, counts = FoldRecord.upgrade(record["metrics"])  # records exported under earlier names too
+    counts.update(record.get("counts", {}))
+    params = {**FoldRecord.params(record["config"]), **counts}
+    params = [Param(k, str(v)[:6000]) for k, v in params.items()]
+    t = record["end_time"] or record["start_time"]
+    metrics = [Metric(k, float(v), t, 0) for k, v in metrics.items()]
+    for i in range(0, max(len(params), len(metrics)), 100):
+        tracker.client.log_batch(run_id, metrics=metrics[i : i + 100], params=params[i : i + 100])
+    tracker.log_fold(run_id, OmegaConf.to_yaml(OmegaConf.create(record["config"])), record["per_mesh"], None)
+    tracker.client.set_terminated(run_id, "FINISHED", end_time=record["end_time"])
 
 
 def main(argv=None) -> None:
@@ -202,6 +292,8 @@ def main(argv=None) -> None:
 
     argv = sys.argv[1:] if argv is None else list(argv)
     if not argv or argv[0] not in ("export", "import"):
+        if argv and argv[0] not in ("-h", "--help"):
+            print(f"error: unknown action {argv[0]!r}: choose export or import", file=sys.stderr)
         print(__doc__.strip().split("\n\n")[1])
         sys.exit(0 if argv and argv[0] in ("-h", "--help") else 2)
     action, args = argv[0], argv[1:]
@@ -210,14 +302,18 @@ def main(argv=None) -> None:
     try:
         with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
             cfg = compose("run", overrides=overrides)
-            tracker = Tracker(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_dir)
             root = Path(own.get("out", own.get("dir", "results")))
+            # the paths first: a mistyped one fails before any store is opened (or created empty)
+            if action == "export":
+                check_output_folder(root, "out")
+                check_store_exists(cfg.tracking.uri)
+            elif not root.is_dir():
+                raise ConfigError(f"dir={root}: no such folder of results records")
+            tracker = Tracker(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_dir)
             if action == "export":
                 written, unchanged = export(tracker, root)
                 print(f"exported to {root}: {written} records written, {unchanged} unchanged")
             else:
-                if not root.is_dir():
-                    raise ConfigError(f"dir={root}: no such folder of results records")
                 rep = import_records(tracker, root)
                 for path, why in rep.refused:
                     print(f"refused {path}: {why}", file=sys.stderr)

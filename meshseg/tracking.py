@@ -298,6 +298,14 @@ def store_uri(uri: str) -> str:
     return uri
 
 
+def check_store_exists(uri: str) -> None:
+    """For commands that read a store (predict): a sqlite store that is not there is a mistyped path, not a
+    new store to create empty."""
+    prefix = "sqlite:///"
+    if uri.startswith(prefix) and not Path(uri[len(prefix) :]).expanduser().is_file():
+        raise TrackingError(f"tracking.uri={uri}: no such store (no file {Path(uri[len(prefix) :]).expanduser()})")
+
+
 def check_server(uri: str, timeout: float = 5.0) -> None:
     """An http(s) store must answer its health check within `timeout` seconds: MLflow's own client
     retries for minutes before it gives up."""
@@ -527,6 +535,7 @@ class Tracker:
         heartbeat_s: float = 30.0,
         lease_timeout_s: float = 120.0,
         attempts: int = 20,
+        start_time: int | None = None,
     ) -> tuple[str | None, object | None]:
         """Create this config's run, RUNNING under a lease, unless the config is taken: returns (run id,
         None), or (None, the holder) when another run of the same `config_hash` is FINISHED or held by a
@@ -547,7 +556,7 @@ class Tracker:
                 LEASE_TIMEOUT: f"{lease_timeout_s:g}",
                 LEASE_INTERVAL: f"{heartbeat_s:g}",
             }
-            mine = self._create(name, {**tags, **lease}).info.run_id
+            mine = self._create(name, {**tags, **lease}, start_time).info.run_id
             try:
                 others = [r for r in self._config_runs(chash) if r.info.run_id != mine]
                 holders = [r for r in others if _holds(r)]
@@ -560,6 +569,7 @@ class Tracker:
             except KeyboardInterrupt:  # Ctrl-C or SIGTERM (meshseg.run.terminate_interrupts) mid-claim
                 self.client.set_terminated(mine, "KILLED")
                 raise
+            self.client.set_terminated(mine, "KILLED")  # a claim that stepped back is no run in progress
             self.client.delete_run(mine)
             time.sleep(random.uniform(0.05, 0.25) * min(attempt + 1, 4))
             # a holder that is still there is not a fellow claimant stepping back: it keeps the config
@@ -571,11 +581,14 @@ class Tracker:
     def _config_runs(self, chash: str) -> list:
         return self.runs(f"tags.config_hash = '{chash}'")
 
-    def _create(self, name: str, tags: dict):
+    def _create(self, name: str, tags: dict, start_time: int | None = None):
         from mlflow.utils.mlflow_tags import MLFLOW_RUN_NAME
 
         tags = {**{k: str(v) for k, v in tags.items()}, MLFLOW_RUN_NAME: name}
-        return _retry(lambda: self.client.create_run(self.experiment_id, run_name=name, tags=tags), "create run")
+        return _retry(
+            lambda: self.client.create_run(self.experiment_id, start_time=start_time, run_name=name, tags=tags),
+            "create run",
+        )
 
     @contextmanager
     def run(self, name: str, tags: dict, params: dict, run_id: str | None = None) -> Iterator[str]:

@@ -164,3 +164,42 @@ def test_shared_group_needs_ops_keyword():
     with pytest.raises(ValueError, match="needs the keyword ops=None"):
         register("test_no_ops", dim=1, shared=True)(lambda V, F: np.zeros((len(F), 1)))
     assert "test_no_ops" not in GROUPS
+
+
+def test_every_single_byte_flip_of_a_cache_entry_is_recomputed_or_read_right(tmp_path):
+    """Issue 26, defect 6: flips in the zip central directory raised NotImplementedError ('zip file version'),
+    in the npy header tokenize.TokenError. Any failure to read an entry is a miss: never a crash, never a
+    wrong array."""
+    cache = FeatureCache(tmp_path)
+    fs = small_set()
+    X = fs.compute(STRIP_V, STRIP_F, "strip", cache)
+    path = cache.path("strip", GROUPS["test_centre"], {"scale": 1.0})
+    good = path.read_bytes()
+    for at in range(len(good)):
+        raw = bytearray(good)
+        raw[at] ^= 0xFF
+        path.write_bytes(bytes(raw))
+        np.testing.assert_array_equal(fs.compute(STRIP_V, STRIP_F, "strip", cache), X, err_msg=f"byte {at}")
+
+
+def test_a_cache_entry_that_cannot_be_written_or_vanishes_is_a_miss(tmp_path, monkeypatch):
+    """Defect 6: a folder at a cache file's path, and a temporary file deleted before it is renamed (a user
+    clearing the cache while a fold runs), crashed the run; now the values are returned and not cached."""
+    import os
+
+    cache = FeatureCache(tmp_path)
+    fs = small_set()
+    want = fs.compute(STRIP_V, STRIP_F, "strip", FeatureCache(None))
+    path = cache.path("strip", GROUPS["test_centre"], {"scale": 1.0})
+    path.mkdir(parents=True)  # a folder where the entry goes
+    np.testing.assert_array_equal(fs.compute(STRIP_V, STRIP_F, "strip", cache), want)
+    path.rmdir()
+    real = os.replace
+
+    def vanished(src, dst):
+        os.unlink(src)  # deleted between writing and renaming
+        return real(src, dst)
+
+    monkeypatch.setattr(os, "replace", vanished)
+    np.testing.assert_array_equal(fs.compute(STRIP_V, STRIP_F, "strip", cache), want)
+    assert not path.exists() and not list((tmp_path / "features").rglob("*.tmp"))

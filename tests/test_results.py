@@ -99,3 +99,112 @@ def test_every_shipped_record_matches_todays_code():
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         stale = [str(p.relative_to(REPO)) for p, r in records if current_hash(r) != r["config_hash"]]
     assert stale == []
+
+
+# Import validation, concurrency and export paths (issue 26)
+
+
+def one_record_folder(exported, tmp_path, edit) -> tuple[Path, Path, dict]:
+    """A results folder holding one exported record, changed by `edit(record)`."""
+    out, _, _ = exported
+    path, record = load_records(out)[0]
+    edit(record)
+    copy = tmp_path / "one" / path.relative_to(out)
+    copy.parent.mkdir(parents=True)
+    copy.write_text(json.dumps(record))
+    return tmp_path / "one", copy, record
+
+
+def test_a_record_whose_tag_hash_differs_from_its_checked_hash_is_refused(exported, tmp_path):
+    """Defect 1: the record's top-level hash was checked and its tags' hash stored, so a table fold's record
+    carrying figure fold 0's hash in its tags made `meshseg.run category=figure fold=0` skip."""
+    out, _, _ = exported
+    records = load_records(out)
+    other = next(r for _, r in records if r["tags"]["category"] != records[0][1]["tags"]["category"])
+    folder, _, record = one_record_folder(
+        exported, tmp_path, lambda r: r["tags"].update(config_hash=other["config_hash"])
+    )
+    store = tracker(tmp_path / "store")
+    rep = import_records(store, folder)
+    assert rep.imported == [] and len(rep.refused) == 1
+    assert f"its tags name config hash {other['config_hash']}, the record {record['config_hash']}" in rep.refused[0][1]
+    assert store.finished(other["config_hash"]) is None and store.runs() == []  # that fold still trains
+
+
+def test_records_that_are_not_whole_are_refused_before_any_run_is_made(exported, tmp_path):
+    """Defect 4: a string metric, a record without tags.category, per-mesh rows without acc or faces,
+    and category/fold in the config unlike the tags: one reason each, no run left in the store."""
+    cases = {
+        "metric": (lambda r: r["metrics"].update({"test/acc": "high"}), "metrics must map names to finite numbers"),
+        "category": (lambda r: r["tags"].pop("category"), "tags lack ['category']"),
+        "acc": (lambda r: [row.pop("acc") for row in r["per_mesh"]], "['acc'] missing or not numbers"),
+        "faces": (lambda r: r["per_mesh"][0].pop("faces"), "['faces'] missing or not numbers"),
+        "fold": (lambda r: r["config"].update(fold=9), "differs from its tags"),
+    }
+    for name, (edit, message) in cases.items():
+        folder, _, _ = one_record_folder(exported, tmp_path / name, edit)
+        store = tracker(tmp_path / name / "store")
+        rep = import_records(store, folder)
+        assert rep.imported == [] and len(rep.refused) == 1 and message in rep.refused[0][1], (name, rep.refused)
+        assert store.client.search_runs([store.experiment_id], run_view_type=3) == [], name  # deleted ones too
+
+
+def test_a_record_name_that_would_leave_results_is_refused_on_import_and_export(exported, tmp_path):
+    """Defect 2: `category: ../../../../escape_cat` with its hash recomputed by meshseg imported, and export
+    wrote four levels above `out`."""
+    from meshseg.errors import ConfigError
+    from meshseg.results import record_path
+
+    folder, _, record = one_record_folder(
+        exported,
+        tmp_path,
+        lambda r: (
+            r["tags"].update(category="../../../../escape_cat"),
+            r["config"].update(category="../../../../escape_cat"),
+        ),
+    )
+    rep = import_records(tracker(tmp_path / "store"), folder)
+    assert rep.imported == [] and "tags.category '../../../../escape_cat' is not a plain name" in rep.refused[0][1]
+    out = tmp_path / "a/b/c/d/results"
+    with pytest.raises(ConfigError, match="must be plain names"):
+        record_path(out, record)
+    assert not (tmp_path / "escape_cat").exists()
+
+
+def _import_into(args) -> tuple[int, int]:
+    store, folder = args
+    rep = import_records(tracker(Path(store)), Path(folder))
+    return len(rep.imported), len(rep.present)
+
+
+def test_two_imports_at_once_make_one_finished_run_per_config(exported, tmp_path):
+    """Defect 3: two imports of one folder into one new store at once made duplicates in 4 of 4 trials."""
+    import multiprocessing as mp
+
+    out, written, _ = exported
+    ctx = mp.get_context("spawn")
+    for trial in range(5):
+        store = tmp_path / f"store{trial}"
+        tracker(store)  # the store exists before the race, as after a first report or sweep
+        with ctx.Pool(2) as pool:
+            results = pool.map(_import_into, [(str(store), str(out))] * 2)
+        finished = tracker(store).runs("attributes.status = 'FINISHED'")
+        hashes = [r.data.tags["config_hash"] for r in finished]
+        assert len(hashes) == len(set(hashes)) == written, (trial, results)
+        assert sum(i for i, _ in results) == written  # each record imported by exactly one of the two
+        running = tracker(store).client.search_runs(
+            [tracker(store).experiment_id], "attributes.status = 'RUNNING'", run_view_type=3
+        )
+        assert running == []  # claims that stepped back ended KILLED (defect 8), none left RUNNING
+
+
+def test_an_import_beside_a_live_fold_run_leaves_the_fold_its_config(exported, tmp_path):
+    """Defect 3: an import during a sweep of the same configs ended the fold the sweep held FINISHED twice."""
+    out, written, _ = exported
+    _, record = load_records(out)[0]
+    store = tracker(tmp_path / "store")
+    held, _ = store.claim("a sweep's fold", {"config_hash": record["config_hash"]})  # live lease, this process
+    rep = import_records(store, out)
+    assert len(rep.imported) == written - 1 and len(rep.present) == 1
+    runs = store.runs(f"tags.config_hash = '{record['config_hash']}'")
+    assert [r.info.run_id for r in runs] == [held] and runs[0].info.status == "RUNNING"

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from meshseg.data.mesh import MeshDataError
+from meshseg.errors import ConfigError
 
 _OFF_KEYWORD = re.compile(rb"^(ST)?C?N?OFF$")
 
@@ -158,6 +159,49 @@ def write_off(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray) 
     lines += [f"{x:.17g} {y:.17g} {z:.17g}\n" for x, y, z in vertices.tolist()]
     lines += [f"3 {a} {b} {c}\n" for a, b, c in faces.tolist()]
     _atomic_write_text(path, "".join(lines))
+
+
+def _writable_folder(folder: Path, what: str) -> None:
+    """`folder` (existing) takes new files: probed by making one, which a read-only file system or a
+    permission refuses even to root."""
+    try:
+        fd, probe = tempfile.mkstemp(dir=folder, prefix=".meshseg-probe.")
+    except OSError as e:
+        raise ConfigError(f"{what}: cannot write in {folder} ({e.strerror})") from None
+    os.close(fd)
+    os.unlink(probe)
+
+
+def check_output_file(path, setting: str) -> Path:
+    """An output file named on the command line, checked before any work: not a folder, its folder there and
+    writable. `setting` names it in the one-line error (e.g. `out`)."""
+    p = Path(path).expanduser()
+    what = f"{setting}={path}"
+    if p.is_dir():
+        raise ConfigError(f"{what} is a folder; name the file to write")
+    folder = p.parent
+    if not folder.exists():
+        raise ConfigError(f"{what}: its folder {folder} does not exist")
+    if not folder.is_dir():
+        raise ConfigError(f"{what}: {folder} is a file, not a folder")
+    _writable_folder(folder, what)
+    return p
+
+
+def check_output_folder(path, setting: str) -> Path:
+    """An output folder (made if missing), checked before any work: no file in its place or on its way, the
+    nearest existing folder writable."""
+    p = Path(path).expanduser()
+    what = f"{setting}={path}"
+    if p.exists() and not p.is_dir():
+        raise ConfigError(f"{what} is a file; it must be a folder (or not exist yet)")
+    there = p
+    while not there.exists():
+        there = there.parent
+    if not there.is_dir():
+        raise ConfigError(f"{what}: {there} is a file, not a folder")
+    _writable_folder(there, what)
+    return p
 
 
 def _atomic_write_text(path: Path, text: str) -> None:

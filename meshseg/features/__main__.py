@@ -18,7 +18,7 @@ from omegaconf import DictConfig
 
 from meshseg import CONF_DIR
 from meshseg.data.datasets import build_dataset
-from meshseg.data.io import read_obj, read_off
+from meshseg.data.io import check_output_folder, read_obj, read_off
 from meshseg.data.mesh import Mesh
 from meshseg.errors import ConfigError, MeshDataError, MeshsegError
 from meshseg.features.cache import FeatureCache
@@ -65,6 +65,7 @@ def main(cfg: DictConfig) -> None:
                 raise ConfigError("mesh=FILE needs out=FILE.npy")
             if Path(cfg.out).is_dir():  # checked before the features are computed, not after
                 raise ConfigError(f"out={cfg.out} is a folder; name the .npy file to write")
+            check_output_folder(Path(cfg.out).parent, "out's folder")  # made if missing, so it must be makeable
             mesh = load_mesh_file(cfg.mesh)
             t0 = time.perf_counter()
             X = fs.compute(mesh.vertices, mesh.faces, mesh.content_hash, FeatureCache(cache_root))

@@ -15,7 +15,6 @@ import json
 import logging
 import os
 import tempfile
-import zipfile
 from functools import cache
 from pathlib import Path
 
@@ -122,21 +121,24 @@ class FeatureCache:
             if X.shape == shape and X.dtype == np.float32:
                 return X
             problem = f"shape {X.shape} {X.dtype}, expected {shape} float32"
-        except (zipfile.BadZipFile, OSError, ValueError, KeyError, EOFError) as e:
-            problem = f"unreadable ({e})"
+        except Exception as e:  # any failure to read an entry (zip, npy header, a folder there, ...) is a miss
+            problem = f"unreadable ({type(e).__name__}: {e})"
         log.warning("feature cache %s: %s; recomputing", path, problem)
         return None
 
     @staticmethod
     def _save(path: Path, X: np.ndarray) -> None:
+        """Best effort: the values are computed already, so an entry that cannot be written (its temporary file
+        deleted by someone clearing the cache, a folder where the file goes) is a warning and a later miss."""
         for attempt in range(3):  # the folder may vanish underneath us (a user clearing the cache): recreate it
             try:
                 path.parent.mkdir(parents=True, exist_ok=True)
                 fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".tmp")
                 break
-            except FileNotFoundError:
+            except FileNotFoundError as e:
                 if attempt == 2:
-                    raise
+                    log.warning("feature cache %s: not written (%s)", path, e)
+                    return
             except (FileExistsError, NotADirectoryError):
                 raise ConfigError(
                     f"paths.cache_dir: cannot write the feature cache under {path.parent}: "
@@ -146,6 +148,9 @@ class FeatureCache:
             with os.fdopen(fd, "wb") as fh:
                 np.savez(fh, x=X)
             os.replace(tmp, path)
+        except OSError as e:
+            Path(tmp).unlink(missing_ok=True)
+            log.warning("feature cache %s: not written (%s)", path, e)
         except BaseException:
             Path(tmp).unlink(missing_ok=True)
             raise

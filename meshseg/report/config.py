@@ -20,10 +20,12 @@ from __future__ import annotations
 import re
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from meshseg import CONF_DIR
+from meshseg.data.io import check_output_folder
 from meshseg.errors import ConfigError
 from meshseg.tracking import FoldRecord
 
@@ -139,6 +141,12 @@ def run_overrides(cfg: DictConfig) -> list[str]:
     return [str(o) for o in OmegaConf.to_container(cfg.overrides, resolve=False)]
 
 
+def _pairs(value) -> bool:
+    """Whether report.paired is one pair of column keys or a list of pairs (an empty one: no comparison)."""
+    pair = lambda p: isinstance(p, ListConfig) and len(p) == 2 and all(isinstance(k, str) for k in p)  # noqa: E731
+    return isinstance(value, ListConfig) and (pair(value) or all(pair(p) for p in value))
+
+
 def check_config(cfg: DictConfig) -> None:
     """Settings no YAML can check; each message says what is allowed."""
     if OmegaConf.is_missing(cfg, "manifest") or not str(cfg.manifest):
@@ -155,16 +163,21 @@ def check_config(cfg: DictConfig) -> None:
         raise ConfigError(f"report.level={s.level} must be a number between 0 and 1 (0.95: a 95 % interval)")
     if not (isinstance(s.seed, int) and not isinstance(s.seed, bool) and s.seed >= 0):
         raise ConfigError(f"report.seed={s.seed} must be an integer >= 0")
+    # output and input folders before any table is built (a bad path is no reason to read every run first)
+    if s.get("results") not in (None, "results") and not Path(str(s.results)).is_dir():
+        raise ConfigError(f"report.results={s.results}: no such folder of results records (null: import none)")
+    check_output_folder(s.out_dir, "report.out_dir")
     if s.sets is not None and not isinstance(s.sets, ListConfig):
         raise ConfigError(f"report.sets={s.sets} must be a list of set or category names, e.g. report.sets=[Teddy]")
     if s.get("columns") is not None and not (
         isinstance(s.columns, ListConfig) and len(s.columns) and all(isinstance(k, str) for k in s.columns)
     ):
         raise ConfigError(f"report.columns={s.columns} must be a list of column keys, e.g. report.columns=[3B,ToG15]")
-    if s.paired is not None and not (
-        isinstance(s.paired, ListConfig) and len(s.paired) == 2 and all(isinstance(k, str) for k in s.paired)
-    ):
-        raise ConfigError(f"report.paired={s.paired} must be two column keys, e.g. report.paired=[cnn1d,K2010]")
+    if s.paired is not None and not _pairs(s.paired):
+        raise ConfigError(
+            f"report.paired={s.paired} must be two column keys, e.g. report.paired=[cnn1d,K2010], or a list of "
+            "such pairs, e.g. [[3B,1B],[1B,ToG15]] ([] for none)"
+        )
     for key in ("log", *(("dry_run",) if "dry_run" in s else ())):
         if not isinstance(s[key], bool):
             raise ConfigError(f"report.{key}={s[key]} must be true or false")
