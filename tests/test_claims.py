@@ -150,6 +150,8 @@ def test_the_readme_claims_table_matches_reports_claims_csv():
     readme = (REPO / "README.md").read_text()
     block = re.search(r"<!-- claims:begin -->\n(.*?)<!-- claims:end -->", readme, re.S)
     assert block, "README lacks the claims table between <!-- claims:begin --> and <!-- claims:end -->"
+    claims_md = (REPO / "reports/claims/claims.md").read_text()
+    assert block.group(1).strip() in claims_md  # the whole table, budget column and all (scripts/readme_claims.py)
     rows = [line.split(" | ") for line in block.group(1).splitlines() if re.match(r"\| \w+ \|", line)]
     shipped = list(csv.DictReader((REPO / "reports/claims/claims.csv").open()))
     assert [r[0].strip("| ") for r in rows] == [s["id"] for s in shipped]
@@ -159,3 +161,29 @@ def test_the_readme_claims_table_matches_reports_claims_csv():
             assert r[3].startswith(f"{float(s['reproduced']):+.2f} ["), (r, s)
         else:
             assert r[3] == "—"
+
+
+def test_the_budget_study_note_says_whether_the_budget_moves_a_claims_evidence():
+    from meshseg.report.claims import ClaimsFile
+
+    t = table({"s1": noisy(1.0), "s2": noisy(1.0)})
+    spec = {"table": "study", "compare": {"3B": ["a", "b"]}}
+
+    def effect(study):
+        c = Claim("c", "a beats b", "§4", "t", "a", "b", models=("3B",))
+        cf = ClaimsFile("claims", "C", "rule", (), (c,), (), 1.0, 2.0, spec, Path("c.yaml"))
+        return build_report(cf, {"t": t, "study": study}).verdicts[0]
+
+    moved = effect(table({"s1": noisy(0.8), "s2": noisy(0.9)}))  # the alternative budget scores higher
+    assert moved.budget_effect == "moves it" and "3B a − b +0.8" in moved.notes[0]
+    assert summary_table_line(moved).endswith("| cpu; budget study: moves it |")
+    assert effect(table({"s1": noisy(0.0, 40), "s2": noisy(0.0, 40)})).budget_effect == "no effect"
+    pending = effect(table({"s1": noisy(1.0), "s2": noisy(1.0)}, missing={"s1": 1}))
+    assert pending.budget_effect == "pending" and "budget study not yet run (1 runs missing)" in pending.notes[0]
+
+
+def summary_table_line(v) -> str:
+    from meshseg.report.claims import ClaimsFile, ClaimsReport
+
+    cf = ClaimsFile("claims", "C", "rule", (), (v.claim,), (), 1.0, 2.0, {}, Path("c.yaml"))
+    return summary_table(ClaimsReport(cf, [v], [], [])).splitlines()[2]

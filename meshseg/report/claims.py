@@ -169,6 +169,7 @@ class Verdict:
     missing_runs: int = 0
     budget: str = ""  # the budget(s) of the evidence
     notes: list[str] = field(default_factory=list)
+    budget_effect: str = ""  # what the budget study says of it: pending | moves it | no effect ("": not asked)
 
     @property
     def reproduced_text(self) -> str:
@@ -322,22 +323,26 @@ def judge_table(spec: TableSpec, table: Table, verdicts: list[Verdict], full: fl
     return TableVerdict(spec, "partial" if within else "not reproduced", cols, text)
 
 
-def budget_note(claim: Claim, study: Table | None, spec: dict, n_boot: int, seed: int) -> str:
+def budget_note(claim: Claim, study: Table | None, spec: dict, n_boot: int, seed: int) -> tuple[str, str]:
     """What the budget study says of the models the claim's evidence rests on: per model, the budget
-    alternative minus `cpu` over the study's sets, and whether that moves results (interval excludes 0)."""
+    alternative minus `cpu` over the study's sets, and whether that moves results (interval excludes 0).
+    Returns (the note, its gist: pending | moves it | no effect; both empty where the claim names no model)."""
     if not claim.models or study is None:
-        return ""
-    parts = []
+        return "", ""
+    parts, gist = [], []
     for model in claim.models:
         a, b = spec["compare"][model]
         probe = Claim(f"budget {model}", "", "", study.manifest.name, a, b)
         v = judge(probe, study, n_boot, seed)
         if v.value is None:
             parts.append(f"{model}: budget study {v.verdict_text}")
+            gist.append("pending")
             continue
-        moves = "moves it" if v.ci[0] > 0 or v.ci[1] < 0 else "does not move it"
-        parts.append(f"{model} {a} − {b} {v.reproduced_text}: the budget {moves}")
-    return "; ".join(parts)
+        moves = v.ci[0] > 0 or v.ci[1] < 0
+        parts.append(f"{model} {a} − {b} {v.reproduced_text}: the budget {'moves it' if moves else 'does not move it'}")
+        gist.append("moves it" if moves else "no effect")
+    effect = "moves it" if "moves it" in gist else "pending" if "pending" in gist else "no effect"
+    return "; ".join(parts), effect
 
 
 @dataclass
@@ -386,7 +391,7 @@ def build_report(claims: ClaimsFile, tables: dict[str, Table], n_boot: int = 200
     verdicts = []
     for c in claims.claims:
         v = judge(c, tables[c.table], n_boot, seed)
-        note = budget_note(c, study, claims.study, n_boot, seed)
+        note, v.budget_effect = budget_note(c, study, claims.study, n_boot, seed)
         if note:
             v.notes.append(note)
         verdicts.append(v)
@@ -411,7 +416,7 @@ def summary_table(report: ClaimsReport) -> str:
         c = v.claim
         lines.append(
             f"| {c.id} | {c.text} ({c.source}) | {_num(v.published)} | {v.reproduced_text} | "
-            f"{v.verdict_text} | {v.budget or '—'} |"
+            f"{v.verdict_text} | {v.budget or '—'}{f'; budget study: {v.budget_effect}' if v.budget_effect else ''} |"
         )
     return "\n".join(lines)
 
@@ -450,7 +455,7 @@ def csv_text(report: ClaimsReport) -> str:
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(["id", "claim", "source", "table", "a", "b", "test", "published", "reproduced", "ci_low", "ci_high",
-                "verdict", "against", "missing_runs", "budget", "notes"])  # fmt: skip
+                "verdict", "against", "missing_runs", "budget", "budget_effect", "notes"])  # fmt: skip
     for v in report.verdicts:
         c = v.claim
         w.writerow([
@@ -458,7 +463,7 @@ def csv_text(report: ClaimsReport) -> str:
             "" if v.published is None else f"{v.published:.4f}",
             "" if v.value is None else f"{v.value:.4f}",
             "" if v.ci is None else f"{v.ci[0]:.4f}", "" if v.ci is None else f"{v.ci[1]:.4f}",
-            v.verdict, ";".join(v.against), v.missing_runs, v.budget, " ".join(v.notes),
+            v.verdict, ";".join(v.against), v.missing_runs, v.budget, v.budget_effect, " ".join(v.notes),
         ])  # fmt: skip
     return buf.getvalue()
 
@@ -477,7 +482,7 @@ def figure(report: ClaimsReport):
             ax.errorbar(v.value, y, xerr=[[v.value - v.ci[0]], [v.ci[1] - v.value]], fmt="o", ms=4, capsize=2,
                         color=colors.get(v.verdict, "k"))  # fmt: skip
         else:
-            ax.text(0, y, v.verdict, fontsize=6, va="center", ha="left", color="0.4")
+            ax.text(-0.05, y, v.verdict, fontsize=6, va="center", ha="right", color="0.4")
         if v.published is not None:
             ax.plot(v.published, y, "kx", ms=5)
     ax.axvline(0, color="k", lw=0.6)
