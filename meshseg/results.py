@@ -11,7 +11,8 @@ predictions stay in the store's artifacts.
 
 Import recreates each record as a FINISHED run with the same tags, params, metrics, `config.yaml` and
 `per_mesh.csv`, so the report, `reproduce` (which then skips it), the UI and the notebooks see it. It is
-idempotent (a config hash with a FINISHED run is not imported again), and a record whose config hash the
+idempotent, also beside another import or a sweep (each run is claimed like a fold's), each record is
+checked whole before its run is made, and a record whose config hash the
 current code would no longer give to its overrides and fold (the config changed since) is reported and
 skipped, never mixed in.
 """
