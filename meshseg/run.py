@@ -122,7 +122,10 @@ def check_knobs(cfg: DictConfig) -> None:
 def check_fitter(cfg: DictConfig) -> None:
     """The model's fitter built with the run's training context: what the context refuses (a precision
     the CPU lacks) and what the fitter refuses with it (budget.resample=epoch for a forest) stops here,
-    before any feature is computed or run created."""
+    before any feature is computed or run created. Only settings away from the defaults can be refused, so
+    the default path skips it (building a fitter imports torch and Lightning: seconds before the first line)."""
+    if cfg.budget.get("resample", "fold") == "fold" and str(cfg.trainer.precision) in ("32-true", "32"):
+        return
     from meshseg.training.context import TrainContext
     from meshseg.training.fitters import build_fitter
 

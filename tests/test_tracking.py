@@ -94,7 +94,7 @@ def test_a_claim_stored_later_never_wins_by_an_earlier_start_time(tmp_path, monk
     tags = {"config_hash": "abc"}
     first, _ = t.claim("fold 0", tags)
     create = t.client.create_run
-    monkeypatch.setattr(t.client, "create_run", lambda *a, **k: create(*a, start_time=1, **k))
+    monkeypatch.setattr(t.client, "create_run", lambda *a, **k: create(*a, **{**k, "start_time": 1}))
     second, holder = t.claim("fold 0", tags)
     assert second is None and holder.info.run_id == first
     assert [r.info.run_id for r in t.runs()] == [first]  # the loser's run is gone
