@@ -252,7 +252,7 @@ def import_records(tracker: Tracker, root: Path) -> ImportReport:
             report.refused.append((path, f"config hash {chash} is stale: {why}"))
             continue
         tags = {**record["tags"], "config_hash": chash, "imported_from": str(path)}
-        run_id, holder = tracker.claim(run_name(record["tags"]), tags, start_time=record["start_time"])
+        run_id, _ = tracker.claim(run_name(record["tags"]), tags, start_time=record["start_time"])
         if run_id is None:  # another import, or a sweep, holds this config
             report.present.append(path)
             continue

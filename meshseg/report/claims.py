@@ -495,22 +495,12 @@ def figure(report: ClaimsReport):
 
 def write(report: ClaimsReport, out_dir) -> list[Path]:
     """claims.md, claims.csv and claims.png under out_dir, each written whole or not at all."""
-    from meshseg.report.write import png_bytes
+    from meshseg.report.write import png_bytes, write_files
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    contents = {
-        "claims.md": markdown(report).encode(),
-        "claims.csv": csv_text(report).encode(),
-        "claims.png": png_bytes(figure(report)),
-    }
-    paths = []
-    for name, data in contents.items():
-        path, tmp = out / name, out / f".{name}.tmp"
-        tmp.write_bytes(data)
-        tmp.replace(path)
-        paths.append(path)
-    return paths
+    contents = {"claims.md": markdown(report), "claims.csv": csv_text(report), "claims.png": png_bytes(figure(report))}
+    return write_files(out, contents)
 
 
 def collect_tables(claims: ClaimsFile, cfg) -> dict[str, Table]:

@@ -392,10 +392,14 @@ def write_report(table: Table, out_dir: str | Path) -> list[Path]:
         contents["learning_curve.png"] = png_bytes(learning_curve_figure(table))
     if _has_refinement(table):
         contents["refinement.csv"] = refinement_csv(table)
+    return write_files(out, contents)
+
+
+def write_files(out: Path, contents: dict[str, str | bytes]) -> list[Path]:
+    """Each file of `contents` into the folder `out`, written whole or not at all."""
     paths = []
-    for name in contents:
+    for name, data in contents.items():
         path, tmp = out / name, out / f".{name}.tmp"
-        data = contents[name]
         tmp.write_bytes(data if isinstance(data, bytes) else data.encode())
         tmp.replace(path)
         paths.append(path)
