@@ -87,13 +87,13 @@ def main(argv=None) -> None:
     from mlflow import MlflowClient
 
     from meshseg import CONF_DIR
-    from meshseg.run import run, setup_trainer
+    from meshseg.run import run, setup_process
 
     with tempfile.TemporaryDirectory() as tmp:
         overrides = [*DEFAULT, *args.overrides, f"paths.mlflow_dir={tmp}/mlruns", f"paths.log_dir={tmp}/logs"]
         with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
             cfg = compose("run", overrides=overrides)
-        setup_trainer(cfg.trainer)  # the run's threads and malloc tuning, for the bare network too
+        setup_process(cfg.trainer)  # the run's threads and malloc tuning, for the bare network too
         from meshseg.data.datasets import build_dataset
         from meshseg.features.sets import FeatureSet
 

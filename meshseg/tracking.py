@@ -343,7 +343,7 @@ _IN_CALL = {"depth": 0, "pending": None}
 
 
 def interrupt(reason: str) -> None:
-    """Stop the fold, from a signal handler (meshseg.run.terminate_interrupts): KeyboardInterrupt(reason)
+    """Stop the fold, from a signal handler (meshseg.signals.terminate_interrupts): KeyboardInterrupt(reason)
     now or, while a store call is under way on the main thread, the moment it returns. Raised inside the
     call, it can leave the call's sqlite write transaction open in this process, and the run's own end
     (KILLED) then waits on that lock until it fails ('database is locked')."""
@@ -566,7 +566,7 @@ class Tracker:
                             self.client.set_tag(stale.info.run_id, "superseded_by", mine)
                             self.client.set_terminated(stale.info.run_id, "KILLED")
                     return mine, None
-            except KeyboardInterrupt:  # Ctrl-C or SIGTERM (meshseg.run.terminate_interrupts) mid-claim
+            except KeyboardInterrupt:  # Ctrl-C or SIGTERM (meshseg.signals.terminate_interrupts) mid-claim
                 self.client.set_terminated(mine, "KILLED")
                 raise
             self.client.set_terminated(mine, "KILLED")  # a claim that stepped back is no run in progress

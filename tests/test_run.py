@@ -259,7 +259,7 @@ def test_same_seed_twice_gives_identical_results(store, tmp_path):
     accs, probs = [], []
     for i in range(2):
         cfg = compose_run(*SMALL, "category=figure", "fold=2", f"paths.mlflow_dir={tmp_path}/store{i}")
-        accs.append(run(cfg))
+        accs.append(run(cfg).acc)
         client = MlflowClient(f"sqlite:///{tmp_path}/store{i}/mlflow.db")
         (r,) = client.search_runs([client.get_experiment_by_name("meshseg").experiment_id])
         with np.load(client.download_artifacts(r.info.run_id, "predictions.npz")) as z:

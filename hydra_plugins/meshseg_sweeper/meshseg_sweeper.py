@@ -53,7 +53,7 @@ def summary(returns: list[Sequence[JobReturn]], failed: list[JobReturn], seconds
 class MeshsegSweeper(BasicSweeper):
     def split_arguments(self, overrides: list[Override], max_batch_size: int | None) -> list[list[list[str]]]:
         from meshseg.errors import MeshsegError
-        from meshseg.run import sweep_cells
+        from meshseg.sweep import sweep_cells
 
         jobs = []
         for combo in BasicSweeper.split_arguments(overrides, None)[0]:
@@ -90,9 +90,9 @@ class MeshsegSweeper(BasicSweeper):
         failed: list[JobReturn] = []
         initial_job_idx = 0
         t0 = time.perf_counter()
-        from meshseg.run import SWEEP_JOBS, SWEEP_START
+        from meshseg.sweep import SWEEP_JOBS, SWEEP_START
 
-        # each job logs `job k/N` with the time left (meshseg.run.sweep_progress); launchers pass the environment on
+        # each job logs `job k/N` with the time left (meshseg.sweep.job_progress); launchers pass the environment on
         os.environ[SWEEP_JOBS], os.environ[SWEEP_START] = str(sum(map(len, self.overrides))), f"{time.time():.3f}"
         while not self.is_done():
             batch = self.get_job_batch()

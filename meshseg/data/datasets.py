@@ -64,6 +64,12 @@ class MeshDataset:
     def data_hash(self) -> str:
         raise NotImplementedError
 
+    @property
+    def source(self) -> str:
+        """Where its meshes are read from: its root folder, or the generator for synthetic data."""
+        root = getattr(self, "root", None)
+        return str(Path(root).absolute()) if root is not None else f"meshseg.data.synthetic ({self.name})"
+
     def check_category(self, category: str) -> str:
         if category not in self.categories:
             raise ConfigError(f"dataset {self.name!r} has no category {category!r}; it has {self.categories}")

@@ -120,10 +120,10 @@ class SplitProtocol:
         for fold in folds:
             overlap = set(fold.train) & set(fold.test)
             if overlap:
-                raise ValueError(f"{category} fold {fold.index}: meshes {sorted(overlap)} are in train and test")
+                raise ConfigError(f"{category} fold {fold.index}: meshes {sorted(overlap)} are in train and test")
             uncovered = set(ids) - set(fold.train) - set(fold.test)
             if uncovered:
-                raise ValueError(
+                raise ConfigError(
                     f"{category} fold {fold.index}: meshes {sort_ids(uncovered)} are in neither train nor test"
                 )
         return folds

@@ -1,6 +1,6 @@
 """Train one fold and predict every face of its test meshes: features (cached), the training faces
-sampled and standardised as the budget says, the model's fitter (`conf/model/*.yaml`, `_target_`)
-fitted on them, then class probabilities for every test face."""
+sampled and standardised as the budget says, the model's fitter (`conf/model/*.yaml`, `_target_`, built
+by `build_fitter`) fitted on them, then class probabilities for every test face."""
 
 from __future__ import annotations
 
@@ -12,9 +12,8 @@ import pytorch_lightning as pl
 
 from meshseg.data.mesh import Mesh
 from meshseg.data.splits import Fold
-from meshseg.training.context import TrainContext
 from meshseg.training.data import FeatureSource, build_train, iter_test_inputs
-from meshseg.training.fitters import build_fitter
+from meshseg.training.fitters import Fitter
 
 log = logging.getLogger(__name__)
 
@@ -31,15 +30,15 @@ class FoldPredictions:
 
 
 def fit_predict(
-    source: FeatureSource, fold: Fold, model_cfg, faces_per_mesh: int | None, ctx: TrainContext, workers: int = 2
+    source: FeatureSource, fold: Fold, fitter: Fitter, faces_per_mesh: int | None, workers: int = 2
 ) -> FoldPredictions:
-    """Features (from the cache or computed), the model fitted on the fold's training meshes
-    (`faces_per_mesh` sampled from each, all when None), then class probabilities for every face of
-    every test mesh.
+    """Features (from the cache or computed), the fitter (built by `build_fitter`, with the run's context)
+    fitted on the fold's training meshes (`faces_per_mesh` sampled from each, all when None), then class
+    probabilities for every face of every test mesh.
 
     Timings (seconds): `features` (computing what the cache lacks), `mesh` (reading meshes), `load`
     (reading cached features), `rings` (X^1..X^B), `standardise`, `train`, `predict` (the model only)."""
-    fitter = build_fitter(model_cfg, ctx)  # its settings checked before any work
+    ctx = fitter.context
     timings = source.timings
     with timings("features"):
         source.prepare([*fold.train, *fold.test], workers)

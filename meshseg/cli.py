@@ -1,0 +1,92 @@
+"""What every `python -m meshseg.<command>` shares: the error contract and the checks of a run's command line.
+
+A user's mistake (a `MeshsegError`: bad file, bad setting, store not answering) ends any command with one
+line `error: <message>` on stderr and exit status `ERROR_EXIT`, the status Hydra itself exits with on a bad
+override, so a script sees one code for every user error of every command. Anything else is a bug and keeps
+its traceback.
+"""
+
+from __future__ import annotations
+
+import functools
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import NoReturn
+
+from meshseg import CONF_DIR
+from meshseg.errors import ConfigError, MeshsegError
+
+#: the exit status of every command on a user error (and on a usage error)
+ERROR_EXIT = 1
+
+
+def fail(message: object) -> NoReturn:
+    """End the command on a user error: `error: <message>` on stderr, exit status ERROR_EXIT."""
+    print(f"error: {message}", file=sys.stderr, flush=True)
+    sys.exit(ERROR_EXIT)
+
+
+def command(fn: Callable) -> Callable:
+    """A command's entry point under the error contract: a MeshsegError it raises ends it through `fail`."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except MeshsegError as e:
+            fail(e)
+
+    return wrapper
+
+
+def usage(doc: str, argv: list[str]) -> bool:
+    """Print a command's usage when asked (-h, --help: exit 0) or when given nothing (a usage error)."""
+    if argv and argv[0] not in ("-h", "--help"):
+        return False
+    print(doc.strip())
+    sys.exit(0 if argv else ERROR_EXIT)
+
+
+def known_settings() -> tuple[str, ...]:
+    """The top-level keys a run config may have: conf/run.yaml's groups and its own keys."""
+    import yaml
+
+    primary = yaml.safe_load((Path(CONF_DIR) / "run.yaml").read_text())
+    groups = [next(iter(d)) if isinstance(d, dict) else d for d in primary["defaults"]]
+    keys = [*(g for g in groups if g != "_self_" and not g.startswith("override ")), *primary]
+    return tuple(k for k in dict.fromkeys(keys) if k not in ("defaults", "hydra"))
+
+
+def check_settings(keys) -> None:
+    """Refuse a top-level key no config group or setting uses (`+modle=cnn1d` would otherwise train the
+    default model with a junk key in its config hash), suggesting the nearest known one."""
+    import difflib
+
+    known = known_settings()
+    for key in keys:
+        if key not in known:
+            near = difflib.get_close_matches(key, known, n=1)
+            hint = f" (did you mean {near[0]}?)" if near else ""
+            raise ConfigError(f"unknown setting {key!r}{hint}: meshseg.run takes {', '.join(known)}")
+
+
+#: Hydra's flags whose next argument is their value, not an override
+_VALUE_FLAGS = {
+    *("-sc", "--shell-completion", "-cp", "--config-path", "-cn", "--config-name", "-cd", "--config-dir"),
+    *("-c", "--cfg", "-p", "--package", "--experimental-rerun"),
+}
+
+
+def check_argv(argv: list[str]) -> None:
+    """`check_settings` on the command line's overrides, before Hydra suggests `+key=` for a typo."""
+    keys, flag_value = [], False
+    for arg in argv:
+        if flag_value or arg.startswith("-") or "=" not in arg:
+            # -m, --flags, and the value of a flag that takes one (`-sc install=bash` is no setting)
+            flag_value = arg in _VALUE_FLAGS
+            continue
+        key = arg.split("=", 1)[0].lstrip("+~").split(".")[0].split("/")[0].split("@")[0]
+        if key != "hydra":
+            keys.append(key)
+    check_settings(keys)

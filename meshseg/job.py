@@ -1,0 +1,163 @@
+"""One fold's job: everything its run needs, resolved from the run config and checked once, before any
+feature is computed or any run created. Below this module, layers get plain values and built objects,
+not the run config."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+from meshseg.data.datasets import MeshDataset, build_dataset
+from meshseg.data.splits import Fold, build_split
+from meshseg.errors import ConfigError
+from meshseg.features.sets import FeatureSet
+from meshseg.refine import build_refinement
+
+BRANCHES = (1, 2, 3, 4)
+RING_ADJACENCY = ("edge", "vertex")
+RESAMPLE = ("fold", "epoch")  # budget.resample
+CHECKPOINTS = (True, False, "auto")  # tracking.checkpoints
+
+
+@dataclass(frozen=True)
+class FoldJob:
+    """A fold resolved: the data it trains and tests on, the method's parts (built, not fitted), and how
+    its run is recorded. `config` is the fold's resolved config, its identity (`config_hash`)."""
+
+    dataset: MeshDataset
+    category: str
+    fold: Fold
+    split: str  # the split's tag: loo, 5fold, fixed
+    features: FeatureSet
+    fitter: object  # meshseg.training.fitters.Fitter, built (its settings checked), not fitted
+    refinement: object  # meshseg.refine.Refinement
+    branches: int
+    ring_adjacency: str
+    faces_per_mesh: int | None
+    workers: int
+    cache_dir: str
+    checkpoints: Path | None  # per-epoch checkpoints (a killed fold resumes from them), or none
+    tracking: dict  # the tracking settings (store, leases, what to log)
+    config: dict
+    config_hash: str
+    name: str  # the run's name
+    tags: dict
+
+    @classmethod
+    def from_config(cls, cfg: DictConfig, overrides: list[str] | None = None) -> FoldJob:
+        """The fold job a run config describes, every setting checked; nothing computed, no run created.
+        `overrides`: the command line's (recorded as provenance)."""
+        from meshseg.tracking import FoldRecord, fold_identity
+
+        check_config(cfg)
+        # resolved once (${...} evaluated): the parts are built from the very values the identity hashes
+        run = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
+        dataset = build_dataset(run.dataset)
+        method = build_method(run)
+        category, fold = resolve_fold(run, dataset, method.split)
+        config, chash = fold_identity(run, category, fold, dataset.data_hash)
+        split, features = method.split.name, method.features.name
+        tags = FoldRecord.tags(
+            run,
+            dataset=dataset,
+            category=category,
+            fold=fold,
+            features=features,
+            split=split,
+            config_hash=chash,
+            overrides=overrides,
+        )
+        return cls(
+            dataset=dataset,
+            category=category,
+            fold=fold,
+            split=split,
+            features=method.features,
+            fitter=method.fitter,
+            refinement=method.refinement,
+            branches=run.branches,
+            ring_adjacency=run.ring_adjacency,
+            faces_per_mesh=run.budget.faces_per_mesh,
+            workers=run.workers,
+            cache_dir=run.paths.cache_dir,
+            checkpoints=checkpoint_dir(run, chash),
+            tracking=config["tracking"],
+            config=config,
+            config_hash=chash,
+            name=FoldRecord.name(category, fold.index, run.model.name, run.branches, features, split, run.budget.name),
+            tags=tags,
+        )
+
+
+def check_config(cfg: DictConfig) -> None:
+    """Every run setting no config group checks for itself; each message lists what is allowed."""
+    from meshseg.cli import check_settings
+
+    check_settings([k for k in cfg.keys() if k != "hydra"])  # a sweep job's config carries hydra's own node
+    if cfg.branches not in BRANCHES:
+        raise ConfigError(f"branches={cfg.branches} is not allowed: choose one of {list(BRANCHES)}")
+    fixed = cfg.model.get("branches")
+    if fixed is not None and cfg.branches != fixed:
+        raise ConfigError(
+            f"branches={cfg.branches} is not allowed with model={cfg.model.name}: it takes branches={fixed}"
+        )
+    if cfg.ring_adjacency not in RING_ADJACENCY:
+        raise ConfigError(f"ring_adjacency={cfg.ring_adjacency} is not allowed: choose one of {list(RING_ADJACENCY)}")
+    b = cfg.budget
+    if not (int(b.epochs) >= 1 and int(b.batch_size) >= 1 and (b.faces_per_mesh is None or int(b.faces_per_mesh) >= 1)):
+        raise ConfigError(f"budget {b.name}: epochs and batch_size must be >= 1 and faces_per_mesh >= 1 or null")
+    if b.get("resample", "fold") not in RESAMPLE:
+        raise ConfigError(f"budget.resample={b.resample} is not allowed: choose one of {list(RESAMPLE)}")
+    if not (isinstance(cfg.seed, int) and isinstance(cfg.workers, int) and cfg.workers >= 1):
+        raise ConfigError(f"seed={cfg.seed} must be an integer and workers={cfg.workers} an integer >= 1")
+    if cfg.tracking.get("checkpoints", "auto") not in CHECKPOINTS:
+        raise ConfigError(f"tracking.checkpoints={cfg.tracking.checkpoints} is not allowed: choose auto, true or false")
+    t = cfg.tracking
+    if not (float(t.heartbeat_s) > 0 and float(t.lease_timeout_s) > 2 * float(t.heartbeat_s)):
+        raise ConfigError(
+            f"tracking.heartbeat_s={t.heartbeat_s} must be > 0 and tracking.lease_timeout_s="
+            f"{t.lease_timeout_s} more than twice it"
+        )
+
+
+@dataclass(frozen=True)
+class Method:
+    """The parts a run config's method is made of, built (which checks their settings: a network's, a
+    feature group's, a refinement's, the training context's) and not yet fitted."""
+
+    split: object  # meshseg.data.splits.SplitProtocol
+    features: FeatureSet
+    fitter: object  # meshseg.training.fitters.Fitter; its context gets the run's logger once the run exists
+    refinement: object  # meshseg.refine.Refinement
+
+
+def build_method(cfg: DictConfig) -> Method:
+    """The method's parts, built once per fold, before any feature is computed or run created."""
+    from meshseg.training.context import TrainContext
+    from meshseg.training.fitters import build_fitter
+
+    fitter = build_fitter(cfg.model, TrainContext.from_config(cfg.budget, cfg.trainer, cfg.seed))
+    return Method(build_split(cfg.split), FeatureSet.from_config(cfg.features), fitter, build_refinement(cfg.refine))
+
+
+def checkpoint_dir(cfg: DictConfig, config_hash: str) -> Path | None:
+    """Where a fold keeps its per-epoch checkpoints (`tracking.checkpoints`: auto = at budget=paper, where a
+    fold trains for hours), keyed by its config hash so that the rerun of a killed fold finds them."""
+    on = cfg.tracking.get("checkpoints", "auto")
+    if on is False or (on == "auto" and cfg.budget.name != "paper"):
+        return None
+    return Path(cfg.paths.cache_dir) / "checkpoints" / config_hash
+
+
+def resolve_fold(cfg: DictConfig, dataset: MeshDataset, split) -> tuple[str, Fold]:
+    """The run's category (default: the dataset's first) and fold (default: 0), checked."""
+    category = dataset.check_category(cfg.category) if cfg.category is not None else dataset.categories[0]
+    folds = split.folds(dataset, category)
+    index = 0 if cfg.fold is None else cfg.fold
+    if not (isinstance(index, int) and 0 <= index < len(folds)):
+        raise ConfigError(
+            f"fold={cfg.fold} is out of range: split {split.name} of {category} has folds 0..{len(folds) - 1}"
+        )
+    return category, folds[index]
