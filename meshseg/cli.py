@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import functools
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import NoReturn
 
@@ -27,15 +28,23 @@ def fail(message: object) -> NoReturn:
     sys.exit(ERROR_EXIT)
 
 
+@contextmanager
+def user_errors() -> Iterator[None]:
+    """A command's body under the error contract: a MeshsegError raised in it ends the command through `fail`.
+    (A context, not a decorator, so that Hydra still sees the app function itself.)"""
+    try:
+        yield
+    except MeshsegError as e:
+        fail(e)
+
+
 def command(fn: Callable) -> Callable:
-    """A command's entry point under the error contract: a MeshsegError it raises ends it through `fail`."""
+    """A plain (not Hydra) entry point under the error contract."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
-        try:
+        with user_errors():
             return fn(*args, **kwargs)
-        except MeshsegError as e:
-            fail(e)
 
     return wrapper
 

@@ -25,7 +25,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from meshseg import CONF_DIR
-from meshseg.cli import check_argv, command
+from meshseg.cli import check_argv, command, user_errors
 from meshseg.job import FoldJob
 from meshseg.signals import terminate_interrupts
 from meshseg.sweep import in_sweep, job_done, job_files, job_overrides, job_progress, sweep_tag
@@ -215,7 +215,8 @@ def _app(cfg: DictConfig) -> dict | None:
     logging.getLogger("pytorch_lightning.utilities.rank_zero").setLevel(logging.WARNING)  # no device banners
     if in_sweep():  # the sweeper lists a job's error with the other jobs' outcomes, then exits non-zero
         return dataclasses.asdict(run(cfg))
-    return dataclasses.asdict(command(run)(cfg))
+    with user_errors():
+        return dataclasses.asdict(run(cfg))
 
 
 @command

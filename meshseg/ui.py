@@ -13,9 +13,10 @@ import os
 import shutil
 import sys
 
-from meshseg.errors import MeshsegError
+from meshseg.cli import command
 
 
+@command
 def main(argv=None) -> None:
     from hydra import compose, initialize_config_dir
 
@@ -28,12 +29,9 @@ def main(argv=None) -> None:
         return
     port = next((a.split("=", 1)[1] for a in argv if a.startswith("port=")), "5000")
     overrides = [a for a in argv if not a.startswith("port=")]
-    try:
-        with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-            cfg = compose("run", overrides=overrides)
-        tracker = Tracker(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_dir)
-    except MeshsegError as e:
-        sys.exit(f"error: {e}")
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = compose("run", overrides=overrides)
+    tracker = Tracker(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_dir)
     base = f"http://127.0.0.1:{port}"
     print(f"runs of experiment {cfg.tracking.experiment!r}: {tracker.runs_url(base)}", flush=True)
     if tracker.uri.startswith(("http://", "https://")):

@@ -8,8 +8,8 @@ import hydra
 from omegaconf import DictConfig
 
 from meshseg import CONF_DIR
+from meshseg.cli import user_errors
 from meshseg.data.datasets import MeshDataset, build_dataset
-from meshseg.errors import MeshsegError
 
 
 def summarize(dataset: MeshDataset, out=sys.stdout) -> tuple[int, int]:
@@ -34,10 +34,8 @@ def summarize(dataset: MeshDataset, out=sys.stdout) -> tuple[int, int]:
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="data")
 def main(cfg: DictConfig) -> None:
-    try:
+    with user_errors():
         summarize(build_dataset(cfg.dataset))
-    except MeshsegError as e:  # anything else is a bug: its traceback shows where
-        sys.exit(f"error: {e}")
 
 
 if __name__ == "__main__":
