@@ -9,10 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
+from test_baselines import SMALL, compose_run  # five small figures, cheap features, budget=smoke
 
-from meshseg import CONF_DIR
 from meshseg.data.datasets import build_dataset
 from meshseg.data.splits import Fold
 from meshseg.errors import ConfigError
@@ -23,21 +22,6 @@ from meshseg.training.context import TrainContext
 from meshseg.training.data import FeatureSource
 from meshseg.training.fit import fit_predict
 from meshseg.training.fitters import build_fitter
-
-SMALL = [
-    "dataset.meshes_per_category=5",
-    "dataset.max_faces=3000",
-    "features.groups=[curvature,pca,gc]",
-    "features.name=local",
-    "budget=smoke",
-    "trainer.threads=1",
-    "category=figure",
-]
-
-
-def compose_run(*overrides):
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        return compose("run", overrides=list(overrides))
 
 
 def fitter_for(*overrides):
@@ -109,6 +93,7 @@ def test_build_fitter_refuses_a_bad_network_setting_without_data(model, override
             "model.net.kernels=[[7,5],[4,5]]",
             "model.net.kernels=[[7, 5], [4, 5]] is not allowed: model.net.padding=same needs odd",
         ),
+        ("cnn2d", "model.net.image_shape=[2,2]", "model.net.image_shape=[2, 2] is not allowed: it is too small for 2"),
         ("cnn2d", "model.net.activation=gelu", "model.net.activation=gelu is not allowed: choose one of ['relu'"),
         ("pca_nn", "model.net.n_components=0", "model.net.n_components=0 is not allowed: it must be an integer >= 1"),
         ("pca_nn", "model.net.activation=swish", "model.net.activation=swish is not allowed: choose one of ['tanh'"),

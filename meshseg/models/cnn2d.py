@@ -77,7 +77,7 @@ class ToG15CNN2D(nn.Module):
             self.convs.append(nn.Conv2d(c_in, c_out, (kh, kw), padding=(kh // 2, kw // 2) if same else 0))
             self.norms.append(nn.BatchNorm2d(c_out) if s.batch_norm else nn.Identity())
             c_in = c_out
-        self.out_shape = (c_in, *_map_shape(s))  # the map before flattening
+        self.out_shape = (c_in, *s.map_shape())  # the map before flattening
         self.fc1 = nn.Linear(c_in * self.out_shape[1] * self.out_shape[2], s.hidden)
         self.fc2 = nn.Linear(s.hidden, self.n_classes)
         self.to(memory_format=torch.channels_last)  # conv weights NHWC too: oneDNN then skips reorders
@@ -118,19 +118,3 @@ class ToG15CNN2D(nn.Module):
                 f"expected input of shape (N, 1, {self.n_features}) (batch, branches, features), got {tuple(x.shape)}"
             )
         return x.to(self.fc1.weight.dtype)
-
-
-def _map_shape(s: CNN2DSettings) -> tuple[int, int]:
-    """The (height, width) of the last pooled map; refuses an image too small for the layers."""
-    h, w = s.image_shape
-    for kh, kw in s.kernels:
-        if s.padding == "valid":
-            h, w = h - kh + 1, w - kw + 1
-        h, w = h // s.pool, w // s.pool
-        if min(h, w) < 1:
-            raise s.refuse(
-                "image_shape",
-                f"it is too small for {len(s.channels)} '{s.padding}' convolutions {list(map(list, s.kernels))} "
-                f"each followed by {s.pool}x{s.pool} pooling",
-            )
-    return h, w

@@ -182,6 +182,22 @@ class CNN2DSettings(Settings):
         self._check_number("dropout", 0.0, 1.0)
         if self.padding == "same" and any(k % 2 == 0 for pair in self.kernels for k in pair):
             raise self.refuse("kernels", f"{self.prefix}.padding=same needs odd kernel sizes (centred filters)")
+        self.map_shape()
+
+    def map_shape(self) -> tuple[int, int]:
+        """The (height, width) of the last pooled map; refuses an image too small for the layers."""
+        h, w = self.image_shape
+        for kh, kw in self.kernels:
+            if self.padding == "valid":
+                h, w = h - kh + 1, w - kw + 1
+            h, w = h // self.pool, w // self.pool
+            if min(h, w) < 1:
+                raise self.refuse(
+                    "image_shape",
+                    f"it is too small for {len(self.channels)} '{self.padding}' convolutions "
+                    f"{show(self.kernels)} each followed by {self.pool}x{self.pool} pooling",
+                )
+        return h, w
 
     def _check_kernels(self) -> None:
         rule = f"it must list one size k or [height, width] (integers >= 1) per entry of {self.prefix}.channels"
