@@ -17,6 +17,7 @@ from mlflow import MlflowClient
 from torch import nn
 
 from meshseg import CONF_DIR
+from meshseg.errors import ConfigError
 from meshseg.models.cnn2d import EVAL_CHUNK, ToG15CNN2D
 
 
@@ -142,22 +143,35 @@ def test_same_seed_same_outputs():
 
 
 def test_invalid_arguments():
-    with pytest.raises(ValueError, match=r"image_shape 30x20 holds 600 values, but there are 800 features"):
-        ToG15CNN2D(800, 5)
-    with pytest.raises(ValueError, match=r"takes branches=1"):
-        ToG15CNN2D(600, 5, branches=3)
-    with pytest.raises(ValueError, match=r"odd kernel sizes"):
-        ToG15CNN2D(600, 5, kernels=((6, 5), (5, 5)))
-    with pytest.raises(ValueError, match=r"equal length"):
-        ToG15CNN2D(600, 5, channels=(16,))
-    with pytest.raises(ValueError, match=r"too small"):
-        ToG15CNN2D(600, 5, channels=(4, 4, 4, 4, 4), kernels=(3, 3, 3, 3, 3))
-    with pytest.raises(ValueError, match=r"activation must be one of"):
-        ToG15CNN2D(600, 5, activation="gelu")
-    with pytest.raises(ValueError, match=r"padding must be one of"):
-        ToG15CNN2D(600, 5, padding="full")
-    with pytest.raises(ValueError, match=r"dropout"):
-        ToG15CNN2D(600, 5, dropout=1.0)
+    """Each refusal is one ConfigError line naming the setting as the YAML (or the command line) writes it."""
+    cases = [
+        (
+            dict(n_features=800),
+            r"model\.net\.image_shape=\[30, 20\] is not allowed: it holds 600 values, but there are 800 features",
+        ),
+        (dict(branches=3), r"^branches=3 is not allowed: ToG15CNN2D takes branches=1"),
+        (
+            dict(kernels=((6, 5), (5, 5))),
+            r"^model\.net\.kernels=\[\[6, 5\], \[5, 5\]\] is not allowed: .*odd kernel sizes",
+        ),
+        (
+            dict(channels=(16,)),
+            r"^model\.net\.kernels=.* is not allowed: it must list one size .* per entry of model\.net\.channels",
+        ),
+        (
+            dict(channels=(4,) * 5, kernels=(3,) * 5),
+            r"^model\.net\.image_shape=\[30, 20\] is not allowed: it is too small",
+        ),
+        (dict(activation="gelu"), r"^model\.net\.activation=gelu is not allowed: choose one of \['relu', "),
+        (dict(padding="full"), r"^model\.net\.padding=full is not allowed: choose one of \['same', 'valid'\]"),
+        (dict(dropout=1.0), r"^model\.net\.dropout=1\.0 is not allowed: it must be a number in \[0, 1\)"),
+        (dict(hidden=0), r"^model\.net\.hidden=0 is not allowed: it must be an integer >= 1"),
+        (dict(batch_norm="yes"), r"^model\.net\.batch_norm=yes is not allowed: it must be true or false"),
+    ]
+    for kwargs, message in cases:
+        args = {"n_features": 600, "n_classes": 5, **kwargs}
+        with pytest.raises(ConfigError, match=message):
+            ToG15CNN2D(**args)
     net = ToG15CNN2D(600, 5)
     for shape in [(4, 600), (4, 3, 600), (4, 1, 599), (4, 1, 30, 20)]:
         with pytest.raises(ValueError, match=re.escape("expected input of shape (N, 1, 600)")) as err:

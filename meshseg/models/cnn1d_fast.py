@@ -1,18 +1,6 @@
-"""The paper's multi-branch 1D CNN (§3.4), written for training speed on a few CPU cores: the network
-`meshseg.models.cnn1d.PaperCNN1D` draws, computed by faster kernels.
-
-Architecture (per branch k = 1..B, each with its own parameters; branch k reads its own input X^k of length D):
-
-    Conv1d 1->16, kernel 15, "same" -> BatchNorm -> LeakyReLU(0.2) -> MaxPool 2
-    Conv1d 16->32, kernel 11, "same" -> BatchNorm -> LeakyReLU(0.2) -> MaxPool 2      => 32 x D//4
-
-then depth concatenation of the branches (32·B channels x D//4) -> flatten -> Linear(32·B·(D//4) -> 172)
--> LeakyReLU(0.2) -> Dropout(0.5) -> Linear(172 -> classes), giving logits (the caller applies
-cross-entropy). Max pooling floors odd lengths, like ``nn.MaxPool1d(2)``.
-
-It computes what the straightforward network (`PaperCNN1D`) of ``nn.Conv1d``/``nn.BatchNorm1d``/``nn.LeakyReLU``/
-``nn.MaxPool1d`` computes (tests/test_cnn1d.py checks logits, gradients and running statistics against
-one), about 1.8x faster on 2 CPU cores (benchmarks/train_throughput.py), by
+"""`MultiBranchCNN1D`: the paper's multi-branch 1D CNN (architecture and settings: meshseg/models/cnn1d.py)
+computed by kernels written for training speed on a few CPU cores. It computes what `PaperCNN1D` computes
+(logits, gradients, batch-norm statistics; tests/test_cnn1d.py), by
 
 * keeping every feature map channels-last, (N, L, C) in memory, and running each convolution as a
   ``conv2d`` on an (N, C, 1, L) channels-last view: oneDNN runs that at over half the matmul peak, and
@@ -33,7 +21,7 @@ convolution's weight and bias; and a no-grad eval forward on CPU runs in chunks 
 samples are independent then), about twice as fast as one large batch.
 
 Parameters are stacked over branches: entry [k] of each is what branch k+1's ``nn.Conv1d`` and
-``nn.BatchNorm1d`` hold in the straightforward network (``layers[i]`` is the i-th conv stage):
+``nn.BatchNorm1d`` hold in `PaperCNN1D` (``layers[i]`` is the i-th conv stage):
 
     layers[i].weight        (B, C_out, C_in, K)   <- Conv1d.weight  (same shape)
     layers[i].bias          (B, C_out)            <- Conv1d.bias
@@ -41,28 +29,24 @@ Parameters are stacked over branches: entry [k] of each is what branch k+1's ``n
     layers[i].bn_bias       (B, C_out)            <- BatchNorm1d.bias
     layers[i].running_mean  (B, C_out)  buffer    <- BatchNorm1d.running_mean
     layers[i].running_var   (B, C_out)  buffer    <- BatchNorm1d.running_var
-    fc1, fc2                nn.Linear             <- the same layers: fc1 reads the concatenated map
-                                                     flattened channel-major (channel 32·k + c of branch k+1),
-                                                     as nn.Flatten does on (N, 32·B, D//4)
+    fc1, fc2                nn.Linear             <- the head's two nn.Linear: fc1 reads the concatenated
+                                                     map flattened channel-major, as nn.Flatten does
 
 Initialisation is PyTorch's default (kaiming-uniform a=sqrt(5) and the matching uniform bias for the
-convolutions and linear layers; BN weight 1, bias 0), drawn in the order a straightforward network
-draws it: branch by branch (conv1, conv2), then fc1, fc2. With the same seed the two start identical.
-
-``flops_per_sample`` counts the multiply-adds of the convolutions and linear layers (2 FLOPs each);
-a training step costs about 3x that per sample (forward, and backward for inputs and weights).
+convolutions and linear layers; BN weight 1, bias 0), drawn in `PaperCNN1D`'s order: branch by branch
+(conv1, conv2), then fc1, fc2. With the same seed the two start identical.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-MAX_BRANCHES = 4
+from meshseg.models.settings import CNN1DSettings
+
 EVAL_CHUNK = 128  # samples per chunk of a no-grad eval-mode forward on CPU
 
 
@@ -195,49 +179,26 @@ class BranchConvBlock(nn.Module):
 
 
 class MultiBranchCNN1D(nn.Module):
-    """The paper's multi-branch 1D CNN: input (N, branches, n_features) float -> logits (N, n_classes)."""
+    """The paper's multi-branch 1D CNN: input (N, branches, n_features) float -> logits (N, n_classes).
+    `settings`: CNN1DSettings' fields, as conf/model/*.yaml gives them."""
 
-    def __init__(
-        self,
-        n_features: int,
-        n_classes: int,
-        branches: int = 3,
-        channels: Sequence[int] = (16, 32),
-        kernels: Sequence[int] = (15, 11),
-        hidden: int = 172,
-        negative_slope: float = 0.2,
-        dropout: float = 0.5,
-        pool: int = 2,
-    ):
+    Settings = CNN1DSettings  # checked when the method is built (meshseg.training.fitters.NetFitter)
+
+    def __init__(self, n_features: int, n_classes: int, branches: int = 3, **settings):
         super().__init__()
-        channels, kernels = tuple(int(c) for c in channels), tuple(int(k) for k in kernels)
-        n_features, n_classes, branches, hidden, pool = map(int, (n_features, n_classes, branches, hidden, pool))
-        if not 1 <= branches <= MAX_BRANCHES:
-            raise ValueError(f"branches must be in 1..{MAX_BRANCHES}, got {branches}")
-        if not channels or len(channels) != len(kernels):
-            raise ValueError(f"channels {channels} and kernels {kernels} must be non-empty and of equal length")
-        if min(channels + kernels) < 1 or min(n_classes, hidden, pool) < 1:
-            raise ValueError("channels, kernels, n_classes, hidden and pool must all be >= 1")
-        if negative_slope < 0:
-            raise ValueError(
-                f"negative_slope must be >= 0 (pooling before the activation needs it monotonic), got {negative_slope}"
-            )
-        if not 0 <= dropout < 1:
-            raise ValueError(f"dropout must be in [0, 1), got {dropout}")
-        self.out_length = _out_length(n_features, len(channels), pool)
-        if self.out_length < 1:
-            raise ValueError(f"n_features={n_features} is too short for {len(channels)} poolings by {pool}")
-        self.n_features, self.n_classes, self.branches, self.dropout = n_features, n_classes, branches, dropout
+        s = self.settings = CNN1DSettings.of(settings)
+        self.out_length = s.out_length(n_features, branches)
+        self.n_features, self.n_classes, self.branches = int(n_features), int(n_classes), int(branches)
+        self.dropout, self.negative_slope = s.dropout, s.negative_slope
         self.layers = nn.ModuleList(
-            BranchConvBlock(branches, c_in, c_out, k, pool, float(negative_slope))
-            for c_in, c_out, k in zip((1,) + channels[:-1], channels, kernels)
+            BranchConvBlock(branches, c_in, c_out, k, s.pool, s.negative_slope)
+            for c_in, c_out, k in zip((1,) + s.channels[:-1], s.channels, s.kernels)
         )
-        for k in range(branches):  # the straightforward network's init order: branch by branch, then the head
+        for k in range(branches):  # PaperCNN1D's init order: branch by branch, then the head
             for layer in self.layers:
                 layer.reset_branch(k)
-        self.negative_slope = float(negative_slope)
-        self.fc1 = nn.Linear(branches * channels[-1] * self.out_length, hidden)
-        self.fc2 = nn.Linear(hidden, n_classes)
+        self.fc1 = nn.Linear(branches * s.channels[-1] * self.out_length, s.hidden)
+        self.fc2 = nn.Linear(s.hidden, self.n_classes)
 
     def feature_maps(self, x: torch.Tensor) -> torch.Tensor:
         """The depth-concatenated map before flattening: (N, channels[-1]·branches, n_features // pool**layers).
@@ -275,31 +236,3 @@ class MultiBranchCNN1D(nn.Module):
     def _logits(self, x: torch.Tensor) -> torch.Tensor:
         h = F.leaky_relu_(self.fc1(self._feature_maps(x).flatten(1)), self.negative_slope)
         return self.fc2(F.dropout(h, self.dropout, self.training))
-
-
-def _out_length(n_features: int, n_layers: int, pool: int) -> int:
-    for _ in range(n_layers):
-        n_features //= pool
-    return n_features
-
-
-def flops_per_sample(
-    n_features: int,
-    n_classes: int,
-    branches: int = 3,
-    channels: Sequence[int] = (16, 32),
-    kernels: Sequence[int] = (15, 11),
-    hidden: int = 172,
-    pool: int = 2,
-) -> int:
-    """Forward FLOPs of one sample: 2 x the multiply-adds of the convolutions and the two linear layers.
-
-    Batch norm, activations, pooling and biases (a few operations per activation, not per weight) are
-    not counted. A training step costs about 3x this per sample.
-    """
-    macs, length, c_in = 0, int(n_features), 1
-    for c_out, k in zip(channels, kernels):
-        macs += branches * length * c_out * c_in * k  # 'same' convolution: one output per input position
-        length, c_in = length // pool, c_out
-    macs += branches * c_in * length * hidden + hidden * n_classes
-    return 2 * macs

@@ -10,8 +10,8 @@ What is known, and from where:
   bottom (the vector laid out row by row), and "7x5 convolutional filters" passed over it.
 
 The layer list itself (channels, the other kernels, pooling, the fully connected part, activations,
-training settings) is not in either text at hand, so every one of those is a constructor argument and a
-value in conf/model/cnn2d.yaml, listed in docs/deviations.md. The default is a LeNet-style network of
+training settings) is not in either text at hand, so every one of those is a setting (`CNN2DSettings`)
+and a value in conf/model/cnn2d.yaml, listed in docs/deviations.md. The default is a LeNet-style network of
 its time:
 
     input (N, 1, D) -> image (N, 1, H, W), H x W = D, row-major: feature j at (j // W, j % W)
@@ -34,100 +34,52 @@ cnn2d_throughput.py measures the result beside the 1D CNN.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from meshseg.errors import ConfigError
+from meshseg.models.settings import CNN2DSettings
+
 EVAL_CHUNK = 128  # samples per chunk of a no-grad eval-mode forward on CPU
-ACTIVATIONS = ("relu", "leaky_relu", "tanh", "sigmoid")
-PADDINGS = ("same", "valid")
-
-
-def _pair(k, what: str) -> tuple[int, int]:
-    """An int k -> (k, k); a pair [kh, kw] -> (kh, kw)."""
-    if isinstance(k, int):
-        return int(k), int(k)
-    k = tuple(int(v) for v in k)
-    if len(k) != 2:
-        raise ValueError(f"{what} must be an int or a pair [height, width], got {k}")
-    return k
 
 
 class ToG15CNN2D(nn.Module):
-    """ToG15's 2D CNN: input (N, 1, n_features) float -> logits (N, n_classes).
+    """ToG15's 2D CNN: input (N, 1, n_features) float -> logits (N, n_classes). `settings`:
+    CNN2DSettings' fields (meshseg/models/settings.py), as conf/model/cnn2d.yaml gives them.
 
     `branches` must be 1 (ToG15 reads one feature vector per face); it is an argument so that the
     training code can build every model the same way.
     """
 
-    def __init__(
-        self,
-        n_features: int,
-        n_classes: int,
-        branches: int = 1,
-        image_shape: Sequence[int] = (30, 20),
-        channels: Sequence[int] = (16, 32),
-        kernels: Sequence = ((7, 5), (5, 5)),
-        padding: str = "same",
-        pool: int = 2,
-        hidden: int = 128,
-        activation: str = "relu",
-        negative_slope: float = 0.2,
-        batch_norm: bool = True,
-        dropout: float = 0.5,
-    ):
-        super().__init__()
-        n_features, n_classes, branches, hidden, pool = map(int, (n_features, n_classes, branches, hidden, pool))
-        height, width = _pair(image_shape, "image_shape")
-        channels = tuple(int(c) for c in channels)
-        kernels = tuple(_pair(k, "each kernel") for k in kernels)
-        if branches != 1:
-            raise ValueError(f"ToG15CNN2D takes branches=1 (one feature vector per face), got {branches}")
-        if height * width != n_features:
-            raise ValueError(
-                f"image_shape {height}x{width} holds {height * width} values, but there are "
-                f"{n_features} features: choose H x W = {n_features}"
-            )
-        if min(height, width) < 1:
-            raise ValueError(f"image_shape must be positive, got {height}x{width}")
-        if not channels or len(channels) != len(kernels):
-            raise ValueError(f"channels {channels} and kernels {kernels} must be non-empty and of equal length")
-        if min(channels) < 1 or min(min(k) for k in kernels) < 1 or min(n_classes, hidden, pool) < 1:
-            raise ValueError("channels, kernel sizes, n_classes, hidden and pool must all be >= 1")
-        if padding not in PADDINGS:
-            raise ValueError(f"padding must be one of {list(PADDINGS)}, got {padding!r}")
-        if padding == "same" and any(k % 2 == 0 for kh_kw in kernels for k in kh_kw):
-            raise ValueError(f"padding 'same' needs odd kernel sizes (centred filters), got {kernels}")
-        if activation not in ACTIVATIONS:
-            raise ValueError(f"activation must be one of {list(ACTIVATIONS)}, got {activation!r}")
-        if negative_slope < 0:
-            raise ValueError(f"negative_slope must be >= 0, got {negative_slope}")
-        if not 0 <= dropout < 1:
-            raise ValueError(f"dropout must be in [0, 1), got {dropout}")
+    Settings = CNN2DSettings  # checked when the method is built (meshseg.training.fitters.NetFitter)
 
-        self.n_features, self.n_classes, self.branches = n_features, n_classes, branches
+    def __init__(self, n_features: int, n_classes: int, branches: int = 1, **settings):
+        super().__init__()
+        s = self.settings = CNN2DSettings.of(settings)
+        height, width = s.image_shape
+        if branches != 1:
+            raise ConfigError(f"branches={branches} is not allowed: ToG15CNN2D takes branches=1 (one vector per face)")
+        if height * width != n_features:
+            raise s.refuse(
+                "image_shape",
+                f"it holds {height * width} values, but there are {n_features} features: choose H x W = {n_features}",
+            )
+        self.n_features, self.n_classes, self.branches = int(n_features), int(n_classes), 1
         self.image_shape = (height, width)
-        self.activation, self.negative_slope, self.dropout = activation, float(negative_slope), float(dropout)
-        self.pool = pool
+        self.activation, self.negative_slope, self.dropout = s.activation, s.negative_slope, s.dropout
+        self.pool = s.pool
         self.convs = nn.ModuleList()
         self.norms = nn.ModuleList()
-        h, w, c_in = height, width, 1
-        for c_out, (kh, kw) in zip(channels, kernels):
-            if padding == "valid":
-                h, w = h - kh + 1, w - kw + 1
-            self.convs.append(nn.Conv2d(c_in, c_out, (kh, kw), padding=(kh // 2, kw // 2) if padding == "same" else 0))
-            self.norms.append(nn.BatchNorm2d(c_out) if batch_norm else nn.Identity())
-            h, w, c_in = h // pool, w // pool, c_out
-            if min(h, w) < 1:
-                raise ValueError(
-                    f"image {height}x{width} is too small for {len(channels)} '{padding}' convolutions "
-                    f"{kernels} each followed by {pool}x{pool} pooling"
-                )
-        self.out_shape = (c_in, h, w)  # the map before flattening
-        self.fc1 = nn.Linear(c_in * h * w, hidden)
-        self.fc2 = nn.Linear(hidden, n_classes)
+        c_in = 1
+        for c_out, (kh, kw) in zip(s.channels, s.kernels):
+            same = s.padding == "same"
+            self.convs.append(nn.Conv2d(c_in, c_out, (kh, kw), padding=(kh // 2, kw // 2) if same else 0))
+            self.norms.append(nn.BatchNorm2d(c_out) if s.batch_norm else nn.Identity())
+            c_in = c_out
+        self.out_shape = (c_in, *s.map_shape())  # the map before flattening
+        self.fc1 = nn.Linear(c_in * self.out_shape[1] * self.out_shape[2], s.hidden)
+        self.fc2 = nn.Linear(s.hidden, self.n_classes)
         self.to(memory_format=torch.channels_last)  # conv weights NHWC too: oneDNN then skips reorders
 
     def image(self, x: torch.Tensor) -> torch.Tensor:

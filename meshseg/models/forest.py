@@ -10,6 +10,8 @@ from __future__ import annotations
 import numpy as np
 from sklearn.ensemble import RandomForestClassifier
 
+from meshseg.models.settings import ForestSettings
+
 
 class RandomForest:
     """`fit(X, y)` on inputs X (n, ...) flattened to (n, d); `predict_proba(X)` -> (n, n_classes) float32.
@@ -18,24 +20,16 @@ class RandomForest:
     Deterministic for a given seed whatever `n_jobs` is (each tree's seed is drawn up front).
     """
 
-    def __init__(
-        self,
-        n_classes: int,
-        n_estimators: int = 100,
-        max_features: str | float | int | None = "sqrt",
-        min_samples_leaf: int = 1,
-        max_depth: int | None = None,
-        bootstrap: bool = True,
-        n_jobs: int | None = 1,
-        seed: int = 0,
-    ):
+    def __init__(self, n_classes: int, n_jobs: int | None = 1, seed: int = 0, **settings):
+        """`settings`: ForestSettings' fields (meshseg/models/settings.py), as conf/model/*.yaml gives them."""
+        s = self.settings = ForestSettings.of(settings)
         self.n_classes = int(n_classes)
         self.forest = RandomForestClassifier(
-            n_estimators=int(n_estimators),
-            max_features=max_features,
-            min_samples_leaf=int(min_samples_leaf),
-            max_depth=max_depth,
-            bootstrap=bool(bootstrap),
+            n_estimators=s.n_estimators,
+            max_features=s.max_features,
+            min_samples_leaf=s.min_samples_leaf,
+            max_depth=s.max_depth,
+            bootstrap=s.bootstrap,
             n_jobs=n_jobs,
             random_state=int(seed),
         )

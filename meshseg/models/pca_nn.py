@@ -8,25 +8,18 @@ faces only, as scikit-learn's PCA would be (`components_`, `mean_`).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
 import numpy as np
 import torch
 from torch import nn
 
-ACTIVATIONS = {
-    "tanh": nn.Tanh,
-    "relu": nn.ReLU,
-    "sigmoid": nn.Sigmoid,
-    "leaky_relu": nn.LeakyReLU,
-    "linear": nn.Identity,
-}
+from meshseg.errors import ConfigError
+from meshseg.models.settings import ACTIVATIONS, PCANetSettings
 
 
 def make_activation(name: str) -> nn.Module:
-    """A fresh activation layer by name (one of ACTIVATIONS)."""
+    """A fresh activation layer by name (one of meshseg.models.settings.ACTIVATIONS)."""
     if name not in ACTIVATIONS:
-        raise ValueError(f"activation {name!r} is not known: choose one of {sorted(ACTIVATIONS)}")
+        raise ConfigError(f"activation {name!r} is not known: choose one of {sorted(ACTIVATIONS)}")
     return ACTIVATIONS[name]()
 
 
@@ -38,7 +31,7 @@ def principal_axes(X: np.ndarray, n_components: int, chunk: int = 65536) -> tupl
     """
     n, d = X.shape
     if not 1 <= n_components <= min(n, d):
-        raise ValueError(
+        raise ConfigError(
             f"PCA to {n_components} components needs at least that many features and training faces; "
             f"got {d} features and {n} faces"
         )
@@ -80,24 +73,19 @@ class PCANet(nn.Module):
     not stated (MATLAB's patternnet default, tanh, is the config default).
     """
 
-    def __init__(
-        self,
-        n_features: int,
-        n_classes: int,
-        branches: int = 1,
-        n_components: int = 50,
-        hidden: Sequence[int] = (50, 25, 12),
-        activation: str = "tanh",
-    ):
+    Settings = PCANetSettings  # checked when the method is built (meshseg.training.fitters.NetFitter)
+
+    def __init__(self, n_features: int, n_classes: int, branches: int = 1, **settings):
         super().__init__()
+        s = self.settings = PCANetSettings.of(settings)
         if int(branches) != 1:
-            raise ValueError(f"PCANet takes one branch (single-scale features), got branches={branches}")
+            raise ConfigError(f"branches={branches} is not allowed: PCANet takes one branch (single-scale features)")
         self.n_features = int(n_features)
-        self.pca = PCAProjection(n_features, n_components)
-        layers, width = [], int(n_components)
-        for h in hidden:
-            layers += [nn.Linear(width, int(h)), make_activation(activation)]
-            width = int(h)
+        self.pca = PCAProjection(n_features, s.n_components)
+        layers, width = [], s.n_components
+        for h in s.hidden:
+            layers += [nn.Linear(width, h), make_activation(s.activation)]
+            width = h
         self.mlp = nn.Sequential(*layers, nn.Linear(width, int(n_classes)))
 
     def fit_frozen(self, X: np.ndarray) -> None:

@@ -19,6 +19,7 @@ from torch import nn
 
 from meshseg.errors import ConfigError
 from meshseg.models.autoencoder import Autoencoder, StackedAutoencoderClassifier, kl_sparsity
+from meshseg.models.settings import ForestSettings
 from meshseg.training.context import TrainContext
 from meshseg.training.data import TrainSet
 from meshseg.training.fitters import Fitter, make_forest
@@ -118,6 +119,7 @@ class AutoencoderForest(Fitter):
     def __init__(self, autoencoders: dict, forest: dict, context: TrainContext):
         super().__init__(context)
         self.autoencoders, self.forest = autoencoders, dict(forest)
+        ForestSettings.of(self.forest)  # checked when the method is built
 
     def fit(self, train: TrainSet) -> AutoencoderForest:
         ctx = self.context

@@ -19,6 +19,7 @@ from torch import nn
 
 from meshseg.errors import ConfigError
 from meshseg.models.forest import RandomForest
+from meshseg.models.settings import ForestSettings
 from meshseg.training.context import TrainContext
 from meshseg.training.data import TrainSet
 from meshseg.training.loop import train_stage
@@ -66,10 +67,16 @@ class NetFitter(Fitter):
     """One network trained with cross-entropy by the paper's optimiser (`Segmenter`, §3.4): cnn1d,
     cnn2d, pca_nn. `net` builds the network for the fold's sizes (the YAML's `net:` node, a partial:
     `net(n_features=, n_classes=, branches=)`); a network with frozen data-fitted layers (pca_nn's PCA)
-    has them fitted first, on the training faces only, by its `fit_frozen`."""
+    has them fitted first, on the training faces only, by its `fit_frozen`.
+
+    A network class with a `Settings` attribute (a meshseg.models.settings class) has the partial's
+    settings checked here, when the method is built: before any feature is computed."""
 
     def __init__(self, net: Callable[..., nn.Module], optim: dict, context: TrainContext):
         super().__init__(context)
+        settings = getattr(getattr(net, "func", None), "Settings", None)
+        if settings is not None:
+            settings.of(net.keywords)
         self.net, self.optim = net, dict(optim)
 
     def fit(self, train: TrainSet) -> NetFitter:
@@ -101,6 +108,7 @@ class ForestFitter(Fitter):
     def __init__(self, forest: dict, context: TrainContext):
         super().__init__(context)
         self.forest = dict(forest)
+        ForestSettings.of(self.forest)  # checked when the method is built
 
     def fit(self, train: TrainSet) -> ForestFitter:
         self.forest_ = make_forest(self.forest, train.n_classes, self.context).fit(train.X, train.y)
