@@ -19,6 +19,7 @@ from meshseg.models.pca_nn import principal_axes
 from meshseg.training.context import TrainContext
 from meshseg.training.data import FeatureSource, build_train
 from meshseg.training.fit import fit_predict
+from meshseg.training.fitters import build_fitter
 
 BASELINES = ["pca_nn", "ae_nn", "ae_rf", "rf"]
 SMALL = [
@@ -56,7 +57,7 @@ def source(cache_dir):
 def fit(source, model, test=("0",), seed=0, *overrides):
     cfg = compose_run(*SMALL, f"model={model}", *overrides)
     ctx = TrainContext.from_config(cfg.budget, cfg.trainer, seed)
-    return fit_predict(source, Fold(0, TRAIN, tuple(test)), cfg.model, cfg.budget.faces_per_mesh, ctx, workers=1)
+    return fit_predict(source, Fold(0, TRAIN, tuple(test)), build_fitter(cfg.model, ctx), cfg.budget.faces_per_mesh, workers=1)
 
 
 # --- configuration --------------------------------------------------------------------------------
@@ -98,7 +99,7 @@ def test_an_unknown_fitter_or_setting_is_one_error(source):
 def test_baseline_runs_through_meshseg_run(paths, model, extra):
     from meshseg.run import run
 
-    acc = run(compose_run(*SMALL, f"model={model}", "fold=0", *paths, *extra))
+    acc = run(compose_run(*SMALL, f"model={model}", "fold=0", *paths, *extra)).acc
     client, (r,) = finished(paths, model)
     assert r.data.tags["model"] == model and r.data.tags["branches"] == "1"
     assert np.isclose(r.data.metrics["test/acc"], acc) and 0 <= acc <= 1

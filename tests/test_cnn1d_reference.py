@@ -49,7 +49,7 @@ def test_a_fold_trains_alike_with_either_network(cache_dir):
     for model in ("cnn1d", "cnn1d_reference"):
         c = compose_run(*SMALL, f"model={model}")
         ctx = TrainContext.from_config(c.budget, c.trainer, 0)
-        folds[model] = fit_predict(source, fold, c.model, c.budget.faces_per_mesh, ctx, workers=1)
+        folds[model] = fit_predict(source, fold, build_fitter(c.model, ctx), c.budget.faces_per_mesh, workers=1)
     fast, ref = folds["cnn1d"], folds["cnn1d_reference"]
     assert isinstance(fast.parts["net"], MultiBranchCNN1D) and isinstance(ref.parts["net"], PaperCNN1D)
     assert fast.counts == ref.counts

@@ -67,7 +67,7 @@ def runs(store: Path, status: str | None = None):
 GROUPS = {
     "dataset": ["synthetic", "psb", "coseg"],
     "features": ["f800", "f600", "cf0", "cf1", "cf0_1", "cf1_5", "cf0_5"],
-    "model": ["cnn1d", "cnn2d", "pca_nn", "ae_nn", "ae_rf", "rf"],
+    "model": ["cnn1d", "cnn1d_reference", "cnn2d", "pca_nn", "ae_nn", "ae_rf", "rf"],
     "split": ["loo", "5fold", "fixed"],
     "refine": ["none", "graphcut_classic", "graphcut_agd"],
     "budget": ["smoke", "demo", "cpu", "paper"],
@@ -88,7 +88,7 @@ def test_every_group_option_composes(group, option):
         assert node.name == option
     elif group == "trainer":
         assert node.accelerator == option
-    single_scale = group == "model" and option != "cnn1d"  # the baselines fix branches: 1
+    single_scale = group == "model" and option not in ("cnn1d", "cnn1d_reference")  # the baselines fix branches: 1
     assert cfg.branches == (1 if single_scale else 3) and cfg.seed == 0 and cfg.category is None and cfg.fold is None
     assert cfg.refine.name == (option if group == "refine" else "graphcut_agd")  # the paper's refinement by default
 
