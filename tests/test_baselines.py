@@ -57,7 +57,8 @@ def source(cache_dir):
 def fit(source, model, test=("0",), seed=0, *overrides):
     cfg = compose_run(*SMALL, f"model={model}", *overrides)
     ctx = TrainContext.from_config(cfg.budget, cfg.trainer, seed)
-    return fit_predict(source, Fold(0, TRAIN, tuple(test)), build_fitter(cfg.model, ctx), cfg.budget.faces_per_mesh, workers=1)
+    fitter = build_fitter(cfg.model, ctx)
+    return fit_predict(source, Fold(0, TRAIN, tuple(test)), fitter, cfg.budget.faces_per_mesh, workers=1)
 
 
 # --- configuration --------------------------------------------------------------------------------
