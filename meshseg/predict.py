@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from meshseg.data.mesh import Mesh
-from meshseg.errors import ConfigError, MeshDataError, MeshsegError, TrackingError
+from meshseg.errors import ConfigError, MeshsegError, TrackingError
 
 log = logging.getLogger("meshseg.predict")
 
@@ -94,25 +94,9 @@ class FoldModel:
         features = FeatureSet.from_config(OmegaConf.create(self.features))
         refinement = build_refinement(OmegaConf.create(self.refine))
         scales = mesh_scales(mesh, features, cache_root, self.branches, self.ring_adjacency)
-        P = self.fitter.predict_proba(self.standardiser(np.stack(scales, axis=1)))
+        P = self.fitter.predict_proba(self.standardiser.transform(np.stack(scales, axis=1)))
         labels = refinement(mesh, P, mesh_groups(mesh, features, refinement.needs, cache_root))
         return P, P.argmax(axis=1), labels
-
-
-def read_mesh(path: str) -> Mesh:
-    """An .off or .obj triangle mesh (an .obj's groups are ignored)."""
-    from meshseg.data.io import read_obj, read_off
-
-    p = Path(path)
-    if not p.is_file():
-        raise MeshDataError(p, "no such file")
-    if p.suffix.lower() == ".off":
-        v, f = read_off(p)
-    elif p.suffix.lower() == ".obj":
-        v, f, _, _ = read_obj(p)
-    else:
-        raise MeshDataError(p, f"unknown mesh format {p.suffix!r}: use .off or .obj")
-    return Mesh(v, f, id=p.stem, source=str(p))
 
 
 def write_labels(path: str, labels: np.ndarray, names) -> None:
@@ -154,7 +138,7 @@ def load_run_model(tracker, run_id: str) -> tuple[FoldModel, object]:
 
 def predict(cfg) -> dict:
     """Label `cfg.mesh` with run `cfg.run_id`'s model; write `cfg.out` (and `cfg.render`). Returns a summary."""
-    from meshseg.data.io import check_output_file
+    from meshseg.data.io import check_output_file, read_mesh
     from meshseg.tracking import Tracker, check_store_exists
 
     if not cfg.get("run_id") or not cfg.get("mesh") or not cfg.get("out"):

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import colorsys
 import io
+from dataclasses import dataclass
 
 import numpy as np
 from matplotlib import colormaps
@@ -29,6 +30,7 @@ _BASE = np.array(
     [c for i, c in enumerate(colormaps["tab10"].colors) if i != 7]
     + [c for i, c in enumerate(colormaps["tab20"].colors[1::2]) if i != 7]
 )
+PANEL = 320  # pixels, the side of each panel of `label_comparison_png`
 _MARGIN = 0.04  # fraction of the image left blank on each side of the mesh
 _CHUNK = 1 << 19  # candidate pixels per rasterisation batch: bounds memory when triangles are large
 _EPS = 1e-7  # barycentric tolerance, so pixel centres on a shared edge are never missed
@@ -48,12 +50,22 @@ def label_colors(n: int) -> np.ndarray:
     return np.vstack([_BASE[:n], np.reshape(extra, (-1, 3))])
 
 
-def _camera(elev: float, azim: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Unit vectors screen-right, screen-up and towards the viewer, with the eye placed as in matplotlib's 3D axes."""
-    e, a = np.radians(elev), np.radians(azim)
-    toward = np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
-    right = np.array([-np.sin(a), np.cos(a), 0.0])
-    return right, np.cross(toward, right), toward
+@dataclass(frozen=True)
+class Camera:
+    """Where the eye is, as in matplotlib's 3D axes: `azim` about z and `elev` above the xy plane, degrees."""
+
+    elev: float = 20
+    azim: float = -60
+
+    def axes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Unit vectors screen-right, screen-up and towards the viewer."""
+        e, a = np.radians(self.elev), np.radians(self.azim)
+        toward = np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+        right = np.array([-np.sin(a), np.cos(a), 0.0])
+        return right, np.cross(toward, right), toward
+
+
+_DEFAULT_CAMERA = Camera()
 
 
 def _rasterise(x: np.ndarray, y: np.ndarray, z: np.ndarray, size: int) -> np.ndarray:
@@ -116,12 +128,11 @@ def render_labels(
     n_labels: int,
     *,
     size: int = 320,
-    elev: float = 20,
-    azim: float = -60,
+    camera: Camera = _DEFAULT_CAMERA,
 ) -> np.ndarray:
     """(size, size, 3) uint8 flat-shaded orthographic view, each face in its label's colour, white background.
 
-    The camera follows matplotlib's 3D axes (azim about z, elev above the xy plane, degrees); the projected
+    The `camera` follows matplotlib's 3D axes (azim about z, elev above the xy plane, degrees); the projected
     mesh is centred and scaled to fill the image up to a small margin. Shading is Lambert with the light at the
     camera (0.35 + 0.65 |n.l|), so colours keep their hue. Labels outside [0, n_labels) are grey.
     """
@@ -132,7 +143,7 @@ def render_labels(
     image = np.full((size * size, 3), 255, np.uint8)
     if not len(f):
         return image.reshape(size, size, 3)
-    right, up, toward = _camera(elev, azim)
+    right, up, toward = camera.axes()
     x, y, depth = v @ right, v @ up, v @ toward
     scale = size * (1 - 2 * _MARGIN) / max(np.ptp(x), np.ptp(y), 1e-300)
     px = size / 2 + scale * (x - (x.min() + x.max()) / 2)
@@ -180,11 +191,11 @@ def label_comparison_png(
     label_names: list[str],
     *,
     title: str = "",
-    size: int = 320,
 ) -> bytes:
-    """PNG: the mesh coloured by predicted (left) and ground-truth (right) labels from the same camera, a
-    colour legend, and the area-weighted accuracy in the title. Without ground truth (gt None): the
-    predicted labels alone, titled `title`."""
+    """PNG: the mesh coloured by predicted (left) and ground-truth (right) labels from the same camera
+    (`PANEL` pixels square each), a colour legend, and the area-weighted accuracy in the title. Without
+    ground truth (gt None): the predicted labels alone, titled `title`."""
+    size = PANEL
     n = len(label_names)
     panels = [(np.asarray(pred, np.int64), "predicted")]
     if gt is not None:

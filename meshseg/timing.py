@@ -17,3 +17,13 @@ class Timings(dict):
             yield
         finally:
             self[phase] = self.get(phase, 0.0) + time.perf_counter() - t0
+
+
+def time_left(elapsed_s: float, done: int, remaining: int) -> str:
+    """'about 40 s left' (minutes from 2 min on): `remaining` items at the pace of the `done` items that took
+    `elapsed_s`; '' where nothing is done yet to pace by. The progress lines of epochs, feature meshes and
+    sweep jobs all end with it."""
+    if done <= 0:
+        return ""
+    left = elapsed_s / done * remaining
+    return f"about {left:.0f} s left" if left < 120 else f"about {left / 60:.0f} min left"

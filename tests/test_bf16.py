@@ -124,7 +124,7 @@ def test_bf16_mixed_training_runs_and_learns():
     X[np.arange(384), 1, y] += 2.0  # an easy, learnable signal besides the harder one
     torch.manual_seed(0)
     module = Recording(MultiBranchCNN1D(64, 4, 2), 2, lr_start=0.02, lr_end=0.02)
-    train_stage(module, TrainSet(X, y, Standardiser(X), 384, 4), TrainContext(2, 32, precision="bf16-mixed"))
+    train_stage(module, TrainSet(X, y, Standardiser().fit(X), 384, 4), TrainContext(2, 32, precision="bf16-mixed"))
     assert module.dtypes == {torch.bfloat16}  # the step ran under autocast
     assert all(p.dtype == torch.float32 for p in module.parameters())
     steps = len(module.losses) // 2

@@ -1,5 +1,5 @@
 """A feature group's cache key covers all the code it runs, not just its own module (issue: editing
-`curvature.geodesic_balls` kept serving old `pca` values)."""
+`geodesic_balls`, then in `curvature`, kept serving old `pca` values)."""
 
 import inspect
 
@@ -29,7 +29,8 @@ def edited(monkeypatch):
 @pytest.mark.parametrize(
     "group, module",
     [
-        ("pca", "meshseg.features.curvature"),  # geodesic balls
+        ("pca", "meshseg.features.neighbourhoods"),  # geodesic balls
+        ("curvature", "meshseg.features.neighbourhoods"),
         ("shape_context", "meshseg.features.agd"),  # sampled geodesics
         ("dms", "meshseg.features.shape_diameter"),  # rays
         ("spin_images", "meshseg.features.shape_diameter"),
@@ -51,6 +52,7 @@ def test_editing_code_a_group_runs_changes_its_version(edited, group, module):
     "module, groups",
     [
         ("meshseg.features.pca", ("gc", "hks", "curvature")),
+        ("meshseg.features.curvature", ("pca",)),  # pca's neighbourhoods are not curvature's code
         ("meshseg.features.operators", ("gc", "pca", "curvature", "cf0", "sdf")),  # groups that share nothing
     ],
 )
@@ -64,10 +66,11 @@ def test_dependencies_are_transitive_and_skip_packages():
     deps = cache.dependencies("meshseg.features.pca")
     assert {
         "meshseg.features.pca",
-        "meshseg.features.curvature",
+        "meshseg.features.neighbourhoods",
         "meshseg.features.geometry",
         "meshseg.data.mesh",
     } <= set(deps)
     assert "meshseg.features" not in deps and "meshseg.features.agd" not in deps
+    assert "meshseg.features.curvature" not in deps
     # every group module imports the registry: it must not reach the shared operators
     assert "meshseg.features.operators" not in cache.dependencies("meshseg.features.registry")

@@ -199,7 +199,9 @@ def _original_shape_context(V, F, D):
 
 def test_shape_context_with_every_face_sampled_is_the_original():
     V, F = bumpy_sphere(2)
-    X = shape_context.shape_context(V, F, n_samples=len(F), n_near_samples=0, soft_binning=False)
+    X = shape_context.shape_context(
+        V, F, shape_context.ShapeContextSettings(n_samples=len(F), n_near_samples=0, soft_binning=False)
+    )
     geo = agd.sampled_geodesics(V, F, len(F))
     E = _original_shape_context(V, F, geo.dist.astype(np.float64))
     np.testing.assert_allclose(X, E, atol=1e-5)
@@ -267,7 +269,9 @@ def test_shape_context_angles_on_a_sphere_are_positive():
     """On a sphere the direction to another face dips below that face's tangent plane by half the
     arc between them: u . n_k > 0, positive angles only, and small ones for near faces."""
     m = trimesh.creation.icosphere(subdivisions=3)
-    H = shape_context.shape_context(m.vertices, np.asarray(m.faces), soft_binning=False)
+    H = shape_context.shape_context(
+        m.vertices, np.asarray(m.faces), shape_context.ShapeContextSettings(soft_binning=False)
+    )
     h = H[:, :20].reshape(len(m.faces), 5, 4)  # 5 x 4: angle bins [-90,-45), [-45,0), [0,45), [45,90)
     assert h[:, :, :2].sum() < 1e-3 * h.sum()  # (face normals tilt a little off the radius)
     assert h[:, 0, 3].sum() < 1e-6 * h[:, 0].sum()  # the nearest bin: under 45 degrees

@@ -8,18 +8,10 @@ import pytest
 import trimesh
 
 from meshseg.features import geometry
-from meshseg.features.curvature import (
-    CURVATURE_COLUMNS,
-    clip_outliers,
-    curvature,
-    dual_edges,
-    gc,
-    geodesic_balls,
-    kalogerakis_normalize,
-    principal_curvatures,
-    smoothed_face_normals,
-)
-from meshseg.features.pca import PCA_COLUMNS, covariance_eigenvalues, pca
+from meshseg.features.curvature import CURVATURE_COLUMNS, CurvatureSettings, curvature, gc, principal_curvatures
+from meshseg.features.geometry import clip_outliers, kalogerakis_normalize, smoothed_face_normals
+from meshseg.features.neighbourhoods import face_neighbours, geodesic_balls
+from meshseg.features.pca import PCA_COLUMNS, PCASettings, covariance_eigenvalues, pca
 from meshseg.features.registry import GROUPS
 
 REFERENCE = conftest.SHARED / "data/reference/kalogerakis2010"
@@ -108,9 +100,9 @@ def test_degenerate_mesh_stays_finite():
 def test_bad_radii_count_is_an_error():
     V, F = blob(2)
     with pytest.raises(ValueError, match="4 radii"):
-        curvature(V, F, radii=(0.01, 0.02))
+        curvature(V, F, CurvatureSettings(radii=(0.01, 0.02)))
     with pytest.raises(ValueError, match="4 radii"):
-        pca(V, F, radii=(0.1, 0.2, 0.3))
+        pca(V, F, PCASettings(radii=(0.1, 0.2, 0.3)))
 
 
 # --- invariances -------------------------------------------------------------------------------
@@ -194,7 +186,7 @@ def test_curvature_columns_on_a_sphere():
 
 def test_pca_flat_plane_has_no_normal_spread():
     V, F = grid(40)
-    X = pca(V, F, clip=False)
+    X = pca(V, F, PCASettings(clip=False))
     for s in range(4):
         l0, l1, l2 = X[:, 12 * s], X[:, 12 * s + 1], X[:, 12 * s + 2]
         assert np.abs(l0).max() < 1e-6 * l2.max()
@@ -248,11 +240,11 @@ def test_geodesic_balls_match_the_original_traversal(min_faces, check_normals):
     V, F = blob(3, seed=4)
     V = kalogerakis_normalize(V * [1.0, 1.0, 0.1], F)  # a thin disc: the far side is near the rim
     c, n = geometry.face_centers(V, F), smoothed_face_normals(V, F)
-    nbr, length = dual_edges(V, F)
+    nbr, length = neighbours = face_neighbours(V, F)
     radii = (0.02, 0.1, 0.25)
     got = {}
     for rows, J, masks in geodesic_balls(
-        c, nbr, length, radii, max_neighbors=400, min_faces=min_faces, normals=n if check_normals else None
+        c, neighbours, radii, max_neighbors=400, min_faces=min_faces, normals=n if check_normals else None
     ):
         for i, f in enumerate(rows):
             got[f] = [set(J[i][m[i]]) for m in masks]
@@ -262,7 +254,7 @@ def test_geodesic_balls_match_the_original_traversal(min_faces, check_normals):
             assert got[f][r] == _reference_traversal(nbr, length, n, f, R, min_faces, check_normals), (f, R)
 
 
-def test_smoothed_normals_and_dual_edges():
+def test_smoothed_normals_and_face_neighbours():
     m = trimesh.creation.icosphere(subdivisions=3)
     V, F = np.asarray(m.vertices), np.asarray(m.faces)
     n = smoothed_face_normals(V, F)
@@ -270,7 +262,7 @@ def test_smoothed_normals_and_dual_edges():
     assert (np.einsum("ij,ij->i", n, c / np.linalg.norm(c, axis=1, keepdims=True)) > 0.9999).all()
     Vg, Fg = grid(5)
     np.testing.assert_allclose(smoothed_face_normals(Vg, Fg), np.tile([0, 0, 1.0], (len(Fg), 1)), atol=1e-12)
-    nbr, length = dual_edges(V, F)
+    nbr, length = face_neighbours(V, F)
     assert (nbr >= 0).all() and np.isfinite(length).all() and (length > 0).all()
     assert all(f in nbr[g] for f in range(len(F)) for g in nbr[f])
 

@@ -43,20 +43,12 @@ def test_set_widths(name, dim):
 
 def test_f800_layout_follows_the_paper():
     fs = feature_set("f800")
-    assert fs.layout == {
-        "curvature": (0, 64),
-        "pca": (64, 112),
-        "shape_context": (112, 382),
-        "agd": (382, 397),
-        "sdf": (397, 469),
-        "dms": (469, 493),
-        "spin_images": (493, 593),
-        "cf0": (593, 594),
-        "cf_smooth": (594, 599),
-        "gc": (599, 600),
-        "hks": (600, 700),
-        "sihks": (700, 800),
-    }
+    # the paper's order and widths: Kalogerakis' 593 columns (columns.txt), then CF0, CF1..5, GC, HKS, SIHKS
+    widths = dict(curvature=64, pca=48, shape_context=270, agd=15, sdf=72, dms=24, spin_images=100)
+    widths |= dict(cf0=1, cf_smooth=5, gc=1, hks=100, sihks=100)
+    ends = np.cumsum(list(widths.values())).tolist()
+    assert fs.layout == {g: (e - w, e) for (g, w), e in zip(widths.items(), ends)}
+    assert fs.layout["shape_context"] == (112, 382) and fs.layout["sihks"] == (700, 800)
     ref = REPO.parent / "shared/data/reference/kalogerakis2010/columns.txt"
     if ref.exists():
         names = [line.split("\t", 1)[-1].strip() for line in ref.read_text().splitlines() if line.strip()]

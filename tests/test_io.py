@@ -5,7 +5,7 @@ import re
 import numpy as np
 import pytest
 
-from meshseg.data.io import read_obj, read_off, read_psb_labels, read_seg, write_off
+from meshseg.data.io import atomic_write, read_mesh, read_obj, read_off, read_psb_labels, read_seg, write_off
 from meshseg.data.mesh import MeshDataError
 
 TETRA_V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float)
@@ -89,28 +89,64 @@ def test_a_label_with_no_faces_is_a_blank_line(tmp_path):
     np.testing.assert_array_equal(labels, [0, 1, 0, 1])
 
 
+BAD_OFF = [
+    ("", "empty file"),
+    ("OFF\n", "truncated"),
+    ("OFF\n0 0 0\n", "empty mesh"),
+    (
+        "OFF\n4 4 0\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 2 1\n3 0 1 3\n",
+        "truncated: header declares 4 vertices and 4 faces, file holds 6 records",
+    ),
+    (TETRA_OFF.replace("3 1 2 3", "4 1 2 3 0"), "face 3 has 4 vertices; only triangle"),
+    (TETRA_OFF.replace("0 1 0\n", "0 one 0\n"), "vertex record 2 is not 3 numbers"),
+    (TETRA_OFF.replace("3 0 1 3", "3 0 1.5 3"), "face record 1 is not integers"),
+    ("ply\nformat ascii 1.0\n", "not an OFF file"),
+    ("4OFF\n4 4 0\n", "unsupported OFF variant '4OFF'"),
+]
+BAD_LABELS = [
+    ("", "empty file"),
+    ("wing\n1 2 3\nbody\n", "truncated"),
+    ("wing\n1 2\nbody\n2 3 4\n", "face 2 is labelled twice ('body' and label 'wing')"),
+    ("wing\n1 2\nbody\n3\n", "1 of 4 faces have no label (first: face 4)"),
+    ("wing\n1 2 5\nbody\n3 4\n", "label 'wing' lists face 5, outside 1..4"),
+    ("wing\n1 2 x\nbody\n3 4\n", "face indices of label 'wing' are not integers"),
+]
+
+
 @pytest.mark.parametrize(
-    "text, problem",
-    [
-        ("", "empty file"),
-        ("OFF\n", "truncated"),
-        ("OFF\n0 0 0\n", "empty mesh"),
-        (
-            "OFF\n4 4 0\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 2 1\n3 0 1 3\n",
-            "truncated: header declares 4 vertices and 4 faces, file holds 6 records",
-        ),
-        (TETRA_OFF.replace("3 1 2 3", "4 1 2 3 0"), "face 3 has 4 vertices; only triangle"),
-        (TETRA_OFF.replace("0 1 0\n", "0 one 0\n"), "vertex record 2 is not 3 numbers"),
-        (TETRA_OFF.replace("3 0 1 3", "3 0 1.5 3"), "face record 1 is not integers"),
-        ("ply\nformat ascii 1.0\n", "not an OFF file"),
-        ("4OFF\n4 4 0\n", "unsupported OFF variant '4OFF'"),
-    ],
+    "name, text, problem",
+    [("bad.off", t, p) for t, p in BAD_OFF] + [("1_labels.txt", t, p) for t, p in BAD_LABELS],
 )
-def test_bad_off_raises_one_clear_error(tmp_path, text, problem):
-    p = write(tmp_path, "bad.off", text)
+def test_a_bad_file_raises_one_clear_error_naming_it(tmp_path, name, text, problem):
+    p = write(tmp_path, name, text)
+    read = read_off if name.endswith(".off") else lambda path: read_psb_labels(path, 4)
     with pytest.raises(MeshDataError, match=re.escape(problem)) as e:
-        read_off(p)
+        read(p)
     assert str(e.value).startswith(str(p))
+
+
+def test_read_mesh_off_obj_and_errors(tmp_path):
+    mesh = read_mesh(write(tmp_path, "tet.off", TETRA_OFF))
+    assert (mesh.id, mesh.source) == ("tet", str(tmp_path / "tet.off"))
+    np.testing.assert_array_equal(mesh.faces, TETRA_F)
+    obj = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\ng a\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n"
+    np.testing.assert_array_equal(read_mesh(write(tmp_path, "tet.OBJ", obj)).vertices, TETRA_V)
+    with pytest.raises(MeshDataError, match=re.escape("unknown mesh format '.ply': use .off or .obj")):
+        read_mesh(write(tmp_path, "tet.ply", TETRA_OFF))
+    with pytest.raises(MeshDataError, match="none.off: cannot read"):
+        read_mesh(tmp_path / "none.off")
+
+
+def test_atomic_write_leaves_nothing_behind_when_the_writer_fails(tmp_path):
+    atomic_write(tmp_path / "a.txt", lambda fh: fh.write("old"), "w")
+
+    def fail(fh):
+        fh.write(b"half")
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        atomic_write(tmp_path / "a.txt", fail)
+    assert (tmp_path / "a.txt").read_text() == "old" and [p.name for p in tmp_path.iterdir()] == ["a.txt"]
 
 
 def test_read_obj_groups_become_labels(tmp_path):
@@ -136,24 +172,6 @@ def test_read_psb_labels(tmp_path):
     labels, names = read_psb_labels(p, 4)
     assert names == ("wing", "body")
     np.testing.assert_array_equal(labels, [0, 1, 0, 1])
-
-
-@pytest.mark.parametrize(
-    "text, problem",
-    [
-        ("", "empty file"),
-        ("wing\n1 2 3\nbody\n", "truncated"),
-        ("wing\n1 2\nbody\n2 3 4\n", "face 2 is labelled twice ('body' and label 'wing')"),
-        ("wing\n1 2\nbody\n3\n", "1 of 4 faces have no label (first: face 4)"),
-        ("wing\n1 2 5\nbody\n3 4\n", "label 'wing' lists face 5, outside 1..4"),
-        ("wing\n1 2 x\nbody\n3 4\n", "face indices of label 'wing' are not integers"),
-    ],
-)
-def test_bad_psb_labels(tmp_path, text, problem):
-    p = write(tmp_path, "1_labels.txt", text)
-    with pytest.raises(MeshDataError, match=re.escape(problem)) as e:
-        read_psb_labels(p, 4)
-    assert str(p) in str(e.value)
 
 
 def test_read_seg(tmp_path):

@@ -59,17 +59,17 @@ def step(k: int = 4) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 # the dihedral angle and the weights, by hand
 
 
-def test_dual_edges_signed_fold_angles():
+def test_dihedral_edges_signed_fold_angles():
     for turn in (np.pi / 2, -np.pi / 2, np.pi / 3, -np.pi / 6):
-        pairs, angle, length = graphcut.dual_edges(*hinge(turn))
+        pairs, angle, length = graphcut.dihedral_edges(*hinge(turn))
         assert pairs.tolist() == [[0, 1]]
         assert angle[0] == pytest.approx(turn)  # > 0 convex, < 0 concave
         assert length[0] == pytest.approx(1.0)
-    _, angle, _ = graphcut.dual_edges(*hinge(0.0))  # flat
+    _, angle, _ = graphcut.dihedral_edges(*hinge(0.0))  # flat
     assert abs(angle[0]) < 1e-12
     V, F = hinge(-np.pi / 3)
     F[1] = F[1, ::-1]  # one face wound the other way: the angle is still pi/3, not 2 pi/3
-    _, angle, _ = graphcut.dual_edges(V, F)
+    _, angle, _ = graphcut.dihedral_edges(V, F)
     assert abs(angle[0]) == pytest.approx(np.pi / 3)
 
 
@@ -111,7 +111,7 @@ def test_degenerate_faces_give_finite_weights():
     # a zero-area face (collinear) and a zero-length edge (duplicate vertex)
     V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [2, 0, 0], [1, 0, 0], [1, -1, 0]], float)
     F = np.array([[0, 1, 2], [1, 0, 3], [0, 4, 1], [4, 0, 5]])
-    pairs, angle, length = graphcut.dual_edges(V, F)
+    pairs, angle, length = graphcut.dihedral_edges(V, F)
     theta = graphcut.edge_theta(angle)
     f = np.zeros((len(F), 15))
     for w in (graphcut.classic_weights(theta, length), graphcut.agd_weights(theta, f, pairs, 2.0)):
@@ -178,7 +178,7 @@ def test_lambda_zero_is_the_argmax():
     for name in ("graphcut_classic", "graphcut_agd"):
         np.testing.assert_array_equal(refine_labels(mesh, P, conf(name, lam=0.0), f), P.argmax(1))
     # the cut itself: edge weights that round to nothing leave the argmax start unchanged
-    pairs, angle, length = graphcut.dual_edges(V, F)
+    pairs, angle, length = graphcut.dihedral_edges(V, F)
     w = graphcut.classic_weights(graphcut.edge_theta(angle), length)
     np.testing.assert_array_equal(graphcut.alpha_expansion(P, pairs, w, 1e-12), P.argmax(1))
     np.testing.assert_array_equal(graphcut.alpha_expansion(P, pairs, w, 0.0), P.argmax(1))
@@ -209,7 +209,7 @@ def test_refinement_repairs_noisy_labels(noisy_cup, name):
 @pytest.mark.parametrize("name", ["graphcut_classic", "graphcut_agd"])
 def test_ambiguous_panel_is_cut_at_the_valley_not_the_ridge(name):
     V, F, panel = step()
-    pairs, angle, length = graphcut.dual_edges(V, F)
+    pairs, angle, length = graphcut.dihedral_edges(V, F)
     between = np.sort(panel[pairs], axis=1)
     ridge, valley = (between == [0, 1]).all(axis=1), (between == [1, 2]).all(axis=1)
     np.testing.assert_allclose(angle[ridge], np.pi / 2)

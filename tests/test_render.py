@@ -11,9 +11,9 @@ from mpl_toolkits.mplot3d import proj3d
 
 from meshseg.render import (
     UNLABELLED,
+    Camera,
     _accuracy_title,
     _area_accuracy,
-    _camera,
     _row_normalise,
     confusion_png,
     label_colors,
@@ -68,7 +68,7 @@ def test_camera_matches_matplotlib_3d_axes(elev, azim):
     ax.view_init(elev=elev, azim=azim)
     xs, ys, _ = proj3d.proj_transform(*np.vstack([np.zeros(3), np.eye(3)]).T, ax.get_proj())
     theirs = np.stack([xs[1:] - xs[0], ys[1:] - ys[0]], 1)
-    right, up, toward = _camera(elev, azim)
+    right, up, toward = Camera(elev, azim).axes()
     ours = np.stack([right, up], 1)
     np.testing.assert_allclose(ours / np.abs(ours).max(), theirs / np.abs(theirs).max(), atol=1e-9)
     np.testing.assert_allclose(np.cross(right, up), toward, atol=1e-12)
@@ -77,7 +77,7 @@ def test_camera_matches_matplotlib_3d_axes(elev, azim):
 @pytest.mark.parametrize("azim, front, mirrored", [(0, 1, False), (180, 0, True)])
 def test_nearer_square_hides_farther(azim, front, mirrored):
     v, f, labels = two_squares()
-    img = render_labels(v, f, labels, 2, size=SIZE, elev=0, azim=azim)
+    img = render_labels(v, f, labels, 2, size=SIZE, camera=Camera(elev=0, azim=azim))
     colors = label_colors(2)
     assert img.shape == (SIZE, SIZE, 3) and img.dtype == np.uint8
     assert shows(img[pixel_of(0.5, 0.5, mirrored)], colors[0])  # only the label-0 square is there
@@ -104,7 +104,7 @@ def test_cube_top_seen_from_above_bottom_from_below():
     assert labels.sum() == 2
     colors = label_colors(2)
     for elev, label in [(90, 1), (-90, 0), (0, 0)]:
-        img = render_labels(box.vertices, box.faces, labels, 2, size=SIZE, elev=elev)
+        img = render_labels(box.vertices, box.faces, labels, 2, size=SIZE, camera=Camera(elev=elev))
         centre = img[SIZE // 2, SIZE // 2]
         assert shows(centre, colors[label]) and not shows(centre, colors[1 - label]), elev
 
@@ -112,7 +112,7 @@ def test_cube_top_seen_from_above_bottom_from_below():
 @pytest.mark.parametrize("label", [-1, 2])
 def test_out_of_range_labels_are_grey(label):
     box = trimesh.creation.box()
-    img = render_labels(box.vertices, box.faces, np.full(len(box.faces), label), 2, size=SIZE, elev=90)
+    img = render_labels(box.vertices, box.faces, np.full(len(box.faces), label), 2, size=SIZE, camera=Camera(elev=90))
     assert shows(img[SIZE // 2, SIZE // 2], UNLABELLED)
 
 
@@ -131,7 +131,7 @@ def test_area_accuracy_and_title():
 def test_label_comparison_png_is_two_panels_wide():
     box = trimesh.creation.box()
     gt = (box.face_normals[:, 2] > 0.5).astype(int)
-    png = label_comparison_png(box.vertices, box.faces, 1 - gt, gt, ["side", "top"], title="mesh 1", size=120)
+    png = label_comparison_png(box.vertices, box.faces, 1 - gt, gt, ["side", "top"], title="mesh 1")
     assert png.startswith(b"\x89PNG")
     height, width = imread(io.BytesIO(png)).shape[:2]
     assert 1.6 < width / height < 2.6

@@ -194,7 +194,7 @@ def test_an_interrupt_during_training_reaches_the_fold_as_an_interrupt():
             return torch.optim.SGD(self.parameters(), lr=0.1)
 
     X = np.random.default_rng(0).normal(size=(64, 1, 4)).astype(np.float32)
-    data = TrainSet(X, np.arange(64) % 2, Standardiser(X), 64, 2)
+    data = TrainSet(X, np.arange(64) % 2, Standardiser().fit(X), 64, 2)
     with pytest.raises(KeyboardInterrupt, match="SIGTERM received"):
         train_stage(InterruptedAtStep3(), data, TrainContext(epochs=2, batch_size=8))
 

@@ -11,7 +11,7 @@ def train_set() -> TrainSet:
     # row i carries i in every entry, so a batch says which faces it holds
     X = np.repeat(np.arange(N, dtype=np.float32)[:, None, None], B, axis=1).repeat(D, axis=2)
     y = np.arange(N, dtype=np.int64) % 4
-    return TrainSet(X, y, Standardiser(X), N, 4)
+    return TrainSet(X, y, Standardiser().fit(X), N, 4)
 
 
 def epochs(seed: int, n: int = 3, batch_size: int = 128) -> list[list[np.ndarray]]:
@@ -87,7 +87,7 @@ def test_the_train_set_holds_every_epochs_faces_and_which_rows_each_epoch_trains
     from meshseg.training.data import build_train, epoch_samples
 
     train = build_train(_Source(), ["m0", "m1"], 50, seed=3, epochs=4)
-    raw = train.standardiser.mean[0, 0] + train.X[:, 0, 0] * train.standardiser.scale[0, 0]  # undo standardising
+    raw = train.standardiser.mean_[0, 0] + train.X[:, 0, 0] * train.standardiser.scale_[0, 0]  # undo standardising
     for e, rows in enumerate(train.epoch_rows):
         want = np.concatenate([epoch_samples(300, 50, 4, 3, 0)[e], 1000 + np.arange(40)])
         assert np.allclose(np.sort(raw[rows]), np.sort(want), atol=1e-2)  # 50 of m0's faces, all 40 of m1's
@@ -148,3 +148,28 @@ def test_resampling_each_epoch_is_refused_for_a_fitter_that_fits_once():
     with pytest.raises(ConfigError, match=r"budget.resample=epoch is not allowed with ForestFitter"):
         ForestFitter({"n_estimators": 2}, ctx)
     NetFitter(lambda **kw: None, {}, ctx)  # a network trains epoch by epoch: allowed
+
+
+def test_standardiser_fits_like_a_scikit_learn_scaler():
+    rng = np.random.default_rng(0)
+    X = (rng.standard_normal((200, B, D)) * 3 + 1).astype(np.float32)
+    X[:, 1, 2] = 5.0  # a constant column: centred, not scaled
+    s = Standardiser().fit(X)
+    assert s.mean_.dtype == s.scale_.dtype == np.float32 and s.mean_.shape == (B, D)
+    Z = s.transform(X.copy())
+    np.testing.assert_allclose(Z.reshape(-1, B * D).mean(0), 0, atol=1e-5)
+    std = Z.std(0)
+    assert std[1, 2] == 0 and np.allclose(np.delete(std.ravel(), 1 * D + 2), 1, atol=1e-4)
+    Y = X.copy()
+    assert s.transform(Y) is Y  # in place
+
+
+def test_a_standardiser_pickled_by_older_runs_still_transforms():
+    """The `model/` artifacts of older runs hold Standardisers whose fitted state is named `mean`, `scale`."""
+    import pickle
+
+    old = Standardiser.__new__(Standardiser)
+    old.__dict__.update(mean=np.float32([1, 2]), scale=np.float32([2, 4]))
+    loaded = pickle.loads(pickle.dumps(old))
+    np.testing.assert_array_equal(loaded.transform(np.float32([[3, 6]])), [[1, 1]])
+    assert sorted(vars(loaded)) == ["mean_", "scale_"]

@@ -9,11 +9,13 @@ from __future__ import annotations
 import os
 import re
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
+from typing import IO
 
 import numpy as np
 
-from meshseg.data.mesh import MeshDataError
+from meshseg.data.mesh import Mesh, MeshDataError
 from meshseg.errors import ConfigError
 
 _OFF_KEYWORD = re.compile(rb"^(ST)?C?N?OFF$")
@@ -158,7 +160,33 @@ def write_off(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray) 
     lines = [f"OFF\n{len(vertices)} {len(faces)} 0\n"]
     lines += [f"{x:.17g} {y:.17g} {z:.17g}\n" for x, y, z in vertices.tolist()]
     lines += [f"3 {a} {b} {c}\n" for a, b, c in faces.tolist()]
-    _atomic_write_text(path, "".join(lines))
+    atomic_write(path, lambda fh: fh.write("".join(lines)), "w")
+
+
+def read_mesh(path: str | os.PathLike) -> Mesh:
+    """An .off or .obj triangle mesh file as a `Mesh` (an .obj's groups are ignored), its id the file's stem."""
+    p = Path(path)
+    if p.suffix.lower() == ".off":
+        v, f = read_off(p)
+    elif p.suffix.lower() == ".obj":
+        v, f, _, _ = read_obj(p)
+    else:
+        raise MeshDataError(p, f"unknown mesh format {p.suffix!r}: use .off or .obj")
+    return Mesh(v, f, id=p.stem, source=str(p))
+
+
+def atomic_write(path: str | os.PathLike, write: Callable[[IO], object], mode: str = "wb") -> None:
+    """Write `path` through `write(file)` into a temporary file beside it (opened with `mode`), then rename
+    it: a killed run never leaves a half-written file under the name."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, mode) as fh:
+            write(fh)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
 
 
 def _writable_folder(folder: Path, what: str) -> None:
@@ -202,17 +230,6 @@ def check_output_folder(path, setting: str) -> Path:
         raise ConfigError(f"{what}: {there} is a file, not a folder")
     _writable_folder(there, what)
     return p
-
-
-def _atomic_write_text(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def read_obj(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[str, ...]]:
@@ -339,12 +356,13 @@ def write_psb_labels(path: str | os.PathLike, labels: np.ndarray, names) -> None
         faces = np.flatnonzero(labels == i) + 1
         if faces.size:
             lines += [f"{name}\n", " ".join(map(str, faces.tolist())) + "\n"]
-    _atomic_write_text(Path(path), "".join(lines))
+    atomic_write(path, lambda fh: fh.write("".join(lines)), "w")
 
 
 def write_seg(path: str | os.PathLike, values: np.ndarray) -> None:
     """Write a COSEG `.seg`: one integer label per face, in face order."""
-    _atomic_write_text(Path(path), "".join(f"{v}\n" for v in np.asarray(values, np.int64).tolist()))
+    text = "".join(f"{v}\n" for v in np.asarray(values, np.int64).tolist())
+    atomic_write(path, lambda fh: fh.write(text), "w")
 
 
 def read_psb_label_names(path: str | os.PathLike) -> tuple[str, ...]:

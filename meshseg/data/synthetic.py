@@ -364,8 +364,18 @@ def _is_closed_oriented(faces: np.ndarray) -> bool:
     return bool(np.all(counts == 2))
 
 
-def _polygonize(parts, rotation, center, lo, hi, spacing, offset):
+class _Pose(NamedTuple):
+    """How a shape is posed: world = (canonical - center) @ rotation.T, and the posed shape's bounding box."""
+
+    rotation: np.ndarray
+    center: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+
+
+def _polygonize(parts, pose: _Pose, spacing, offset):
     """Marching cubes of the union SDF on a grid with the given spacing and sub-cell offset."""
+    rotation, center, lo, hi = pose
     origin = lo - (2.0 + offset) * spacing  # >= 2 cells of padding: the surface never touches the border
     shape = np.ceil((hi - origin) / spacing).astype(int) + 3
     axes = [origin[k] + spacing * np.arange(shape[k]) for k in range(3)]
@@ -404,7 +414,7 @@ def sample(category: str, index: int, seed: int = 0, min_faces: int = 1500, max_
     max_spacing = np.inf  # below the coarsest spacing seen to lose a thin part
     for attempt in range(_MAX_PASSES):
         offset = grid_rng.uniform(0.0, 1.0, size=3)  # random grid phase: tessellation differs per mesh
-        verts, faces, dropped = _polygonize(parts, rotation, center, lo, hi, spacing, offset)
+        verts, faces, dropped = _polygonize(parts, _Pose(rotation, center, lo, hi), spacing, offset)
         n_faces.append(n := len(faces))
         centroids = verts[faces].mean(axis=1) @ rotation + center
         labels = part_labels[_part_distances(parts, centroids).argmin(axis=0)]

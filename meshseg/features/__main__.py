@@ -6,9 +6,7 @@ python -m meshseg.features mesh=FILE.off out=FILE.npy features=f800
 
 from __future__ import annotations
 
-import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -18,22 +16,10 @@ from omegaconf import DictConfig
 
 from meshseg import CONF_DIR
 from meshseg.data.datasets import build_dataset
-from meshseg.data.io import check_output_folder, read_obj, read_off
-from meshseg.data.mesh import Mesh
-from meshseg.errors import ConfigError, MeshDataError, MeshsegError
+from meshseg.data.io import atomic_write, check_output_folder, read_mesh
+from meshseg.errors import ConfigError, MeshsegError
 from meshseg.features.cache import FeatureCache
 from meshseg.features.sets import FeatureSet, check_finite, compute_dataset
-
-
-def load_mesh_file(path: str) -> Mesh:
-    p = Path(path)
-    if p.suffix.lower() == ".obj":
-        v, f, _, _ = read_obj(p)
-    elif p.suffix.lower() == ".off":
-        v, f = read_off(p)
-    else:
-        raise MeshDataError(p, "unknown mesh format (expected .off or .obj)")
-    return Mesh(v, f, source=str(p))
 
 
 def save_npy(path: str, X: np.ndarray) -> None:
@@ -45,14 +31,7 @@ def save_npy(path: str, X: np.ndarray) -> None:
         p.parent.mkdir(parents=True, exist_ok=True)
     except (FileExistsError, NotADirectoryError):
         raise ConfigError(f"out={path}: its folder {p.parent} cannot be created (a file is in the way)") from None
-    fd, tmp = tempfile.mkstemp(dir=p.parent, prefix=f".{p.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.save(fh, X)
-        os.replace(tmp, p)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write(p, lambda fh: np.save(fh, X))
 
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="features")
@@ -66,7 +45,7 @@ def main(cfg: DictConfig) -> None:
             if Path(cfg.out).is_dir():  # checked before the features are computed, not after
                 raise ConfigError(f"out={cfg.out} is a folder; name the .npy file to write")
             check_output_folder(Path(cfg.out).parent, "out's folder")  # made if missing, so it must be makeable
-            mesh = load_mesh_file(cfg.mesh)
+            mesh = read_mesh(cfg.mesh)
             t0 = time.perf_counter()
             X = fs.compute(mesh.vertices, mesh.faces, mesh.content_hash, FeatureCache(cache_root))
             check_finite(X, fs, mesh.source)  # never write NaN: the dataset path refuses such a mesh too

@@ -14,12 +14,12 @@ import inspect
 import json
 import logging
 import os
-import tempfile
 from functools import cache
 from pathlib import Path
 
 import numpy as np
 
+from meshseg.data.io import atomic_write
 from meshseg.errors import ConfigError
 from meshseg.features.registry import Group
 
@@ -130,27 +130,20 @@ class FeatureCache:
     def _save(path: Path, X: np.ndarray) -> None:
         """Best effort: the values are computed already, so an entry that cannot be written (its temporary file
         deleted by someone clearing the cache, a folder where the file goes) is a warning and a later miss."""
-        for attempt in range(3):  # the folder may vanish underneath us (a user clearing the cache): recreate it
+        problem = None
+        for _ in range(3):  # the folder may vanish underneath us (a user clearing the cache): recreate it
             try:
                 path.parent.mkdir(parents=True, exist_ok=True)
-                fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".tmp")
-                break
-            except FileNotFoundError as e:
-                if attempt == 2:
-                    log.warning("feature cache %s: not written (%s)", path, e)
-                    return
+                atomic_write(path, lambda fh: np.savez(fh, x=X))
+                return
             except (FileExistsError, NotADirectoryError):
                 raise ConfigError(
                     f"paths.cache_dir: cannot write the feature cache under {path.parent}: "
                     "a file stands where a folder is needed"
                 ) from None
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                np.savez(fh, x=X)
-            os.replace(tmp, path)
-        except OSError as e:
-            Path(tmp).unlink(missing_ok=True)
-            log.warning("feature cache %s: not written (%s)", path, e)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+            except FileNotFoundError as e:
+                problem = e
+            except OSError as e:
+                problem = e
+                break
+        log.warning("feature cache %s: not written (%s)", path, problem)

@@ -24,6 +24,8 @@ Conventions and choices (they change values; see the group docstrings):
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import igl
 import numpy as np
 import scipy.sparse as sp
@@ -165,21 +167,28 @@ def taubin_smooth(V: np.ndarray, mean_nb: sp.spmatrix, lam: float, mu: float, pa
     return V
 
 
+@dataclass(frozen=True)
+class TaubinSettings:
+    """The `cf_smooth` group's parameters: how the mesh is smoothed and what its CF is solved on (see
+    `cf_smooth`)."""
+
+    taubin_lambda: float = 0.5
+    taubin_mu: float = -0.53
+    taubin_pairs: int = 1
+    taubin_weights: str = "cotan"
+    laplacian_mesh: str = "smoothed"
+    target_total: str = "mesh"
+
+
 def smoothed_conformal_factors(
-    V: np.ndarray,
-    F: np.ndarray,
-    iterations: int = 5,
-    taubin_lambda: float = 0.5,
-    taubin_mu: float = -0.53,
-    taubin_pairs: int = 1,
-    taubin_weights: str = "cotan",
-    laplacian_mesh: str = "smoothed",
-    target_total: str = "mesh",
+    V: np.ndarray, F: np.ndarray, settings: TaubinSettings | None = None, iterations: int = 5
 ) -> np.ndarray:
     """Per-vertex Φ^s_i, i = 1..iterations, as an (iterations, n) array: L Φ^s_i = K^{sT}_i − K^T, with
     M^s_i = M^s_{i−1} after `taubin_pairs` λ|μ steps (neighbour weights `taubin_weights` of the
     original mesh), L the Laplacian of M^s_i (`laplacian_mesh="smoothed"`) or of the original mesh
     ("original"), and both targets spreading `target_total` (see target_curvature)."""
+    s = settings or TaubinSettings()
+    laplacian_mesh, target_total = s.laplacian_mesh, s.target_total
     if laplacian_mesh not in ("smoothed", "original"):
         raise ConfigError(f"cf_smooth: laplacian_mesh must be 'smoothed' or 'original', not {laplacian_mesh!r}")
     if target_total not in ("mesh", "sphere"):
@@ -187,10 +196,10 @@ def smoothed_conformal_factors(
     n_comp, labels = vertex_components(F, len(V))
     k_target = target_curvature(V, F, labels, n_comp, target_total)
     L0 = cotan_laplacian(V, F) if laplacian_mesh == "original" else None
-    mean_nb = neighbour_average(V, F, taubin_weights)
+    mean_nb = neighbour_average(V, F, s.taubin_weights)
     out, Vs = [], V
     for _ in range(iterations):
-        Vs = taubin_smooth(Vs, mean_nb, taubin_lambda, taubin_mu, taubin_pairs)
+        Vs = taubin_smooth(Vs, mean_nb, s.taubin_lambda, s.taubin_mu, s.taubin_pairs)
         b = target_curvature(Vs, F, labels, n_comp, target_total) - k_target
         L = L0 if L0 is not None else cotan_laplacian(Vs, F)
         out.append(solve_gauged(L, b, vertex_areas(Vs, F)))
@@ -216,18 +225,8 @@ def cf0(V: np.ndarray, F: np.ndarray) -> np.ndarray:
     return vertex_to_face(conformal_factor(V, F), F)[:, None]
 
 
-@register("cf_smooth", 5, columns=[f"cf{i}" for i in range(1, 6)])
-def cf_smooth(
-    V: np.ndarray,
-    F: np.ndarray,
-    *,
-    taubin_lambda: float = 0.5,
-    taubin_mu: float = -0.53,
-    taubin_pairs: int = 1,
-    taubin_weights: str = "cotan",
-    laplacian_mesh: str = "smoothed",
-    target_total: str = "mesh",
-) -> np.ndarray:
+@register("cf_smooth", 5, columns=[f"cf{i}" for i in range(1, 6)], settings=TaubinSettings)
+def cf_smooth(V: np.ndarray, F: np.ndarray, settings: TaubinSettings | None = None) -> np.ndarray:
     """CF1..CF5: the paper's smoothed conformal factors (§3.1), one column per smoothing iteration.
 
     M^s_i is the mesh after i Taubin iterations (λ = `taubin_lambda`, μ = `taubin_mu`; one
@@ -247,7 +246,5 @@ def cf_smooth(
     per-face mapping and (lack of) normalisation as for cf0.
     """
     V, F = _compact(V, F)
-    phi = smoothed_conformal_factors(
-        V, F, 5, taubin_lambda, taubin_mu, taubin_pairs, taubin_weights, laplacian_mesh, target_total
-    )
+    phi = smoothed_conformal_factors(V, F, settings, 5)
     return vertex_to_face(phi.T, F)

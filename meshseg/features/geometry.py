@@ -168,3 +168,19 @@ def farthest_point_sampling(points: np.ndarray, k: int, tie: float = 1e-9) -> np
         diff = points[near] - points[q]
         d[near] = np.minimum(d[near], np.einsum("ij,ij->i", diff, diff))
     return chosen
+
+
+def clip_outliers(X: np.ndarray, signed: np.ndarray) -> np.ndarray:
+    """The 2010 code's per-mesh outlier clipping, per column: a `signed` column is clipped to its
+    [5 %, 95 %] order statistics, the others (absolute values) to the 95 % order statistic of |x|."""
+    X = np.array(X, dtype=np.float64)
+    n = len(X)
+    hi_i, lo_i = int(0.95 * n), int(0.05 * n)
+    for j in range(X.shape[1]):
+        if signed[j]:
+            s = np.partition(X[:, j], (lo_i, hi_i))
+            X[:, j] = np.clip(X[:, j], s[lo_i], s[hi_i])
+        else:
+            hi = np.partition(np.abs(X[:, j]), hi_i)[hi_i]
+            X[:, j] = np.where(np.abs(X[:, j]) < hi, X[:, j], np.sign(X[:, j]) * hi)
+    return X

@@ -15,6 +15,8 @@ once per mesh and `n_eigen` for both.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import robust_laplacian
 import scipy.linalg
@@ -105,18 +107,19 @@ def hks(V: np.ndarray, F: np.ndarray, *, n_eigen: int = 100, ops=None) -> np.nda
     return vertex_to_face(h, Fc)
 
 
-@register("sihks", 100, columns=[f"sihks{i}" for i in range(100)], shared=True)
-def sihks(
-    V: np.ndarray,
-    F: np.ndarray,
-    *,
-    n_eigen: int = 100,
-    alpha: float = 2.0,
-    tau_step: float = 0.5,
-    tau_start: float = -24.0,
-    n_tau: int = 201,
-    ops=None,
-) -> np.ndarray:
+@dataclass(frozen=True)
+class SIHKSSettings:
+    """The `sihks` group's parameters: the eigenpairs and the log-time grid t_0 α^τ (see `sihks`)."""
+
+    n_eigen: int = 100
+    alpha: float = 2.0
+    tau_step: float = 0.5
+    tau_start: float = -24.0
+    n_tau: int = 201
+
+
+@register("sihks", 100, columns=[f"sihks{i}" for i in range(100)], shared=True, settings=SIHKSSettings)
+def sihks(V: np.ndarray, F: np.ndarray, settings: SIHKSSettings | None = None, ops=None) -> np.ndarray:
     """Scale-invariant HKS (Bronstein & Kokkinos 2010): the first 100 |DFT| frequencies of
     d/dτ log h(α^τ), one column per frequency, 0 (the DC term) first.
 
@@ -133,11 +136,12 @@ def sihks(
     (L-PSB), so every column carries signal; finer steps would put most columns above the band
     where the signal has content. Per vertex, then per face the mean of its three vertices.
     """
-    if (n_tau - 1) // 2 + 1 < 100:
-        raise ConfigError(f"sihks: n_tau={n_tau} gives fewer than 100 frequencies; use n_tau >= 199")
-    lam, phi, Fc, _ = _shared_eigenpairs(V, F, n_eigen, ops)
+    s = settings or SIHKSSettings()
+    if (s.n_tau - 1) // 2 + 1 < 100:
+        raise ConfigError(f"sihks: n_tau={s.n_tau} gives fewer than 100 frequencies; use n_tau >= 199")
+    lam, phi, Fc, _ = _shared_eigenpairs(V, F, s.n_eigen, ops)
     t0 = hks_times(lam, 2)[0]
-    t = t0 * alpha ** (tau_start + tau_step * np.arange(n_tau))
+    t = t0 * s.alpha ** (s.tau_start + s.tau_step * np.arange(s.n_tau))
     h = heat_kernel_signature(lam, phi, t)
     logh = np.log(np.maximum(h, np.finfo(np.float64).tiny))
     spectrum = np.abs(np.fft.rfft(np.diff(logh, axis=1), axis=1))[:, :100]

@@ -8,6 +8,8 @@ lengths to the surface describe how far the surface is from that point of the me
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from meshseg.features.registry import register
@@ -27,6 +29,17 @@ from meshseg.features.shape_diameter import (
 RINGS = (45, 90, 135)
 
 
+@dataclass(frozen=True)
+class DMSSettings:
+    """The `dms` group's parameters (see `dms`)."""
+
+    sdf_rays_per_cone: int = 8
+    rays_per_ring: int = 8
+    normals: str = "vertex"
+    frame: str = "principal"
+    outlier_quantile: float = 0.95
+
+
 def medial_rays(setup: RaySetup, sdf_rays_per_cone: int, rays_per_ring: int) -> np.ndarray:
     """(F, 1 + 3k) per face: the distance from the face centre to its medial point (half the
     shortest SDF ray within 45°), then the ray lengths from the medial point on the rings at 45°,
@@ -42,35 +55,19 @@ def medial_rays(setup: RaySetup, sdf_rays_per_cone: int, rays_per_ring: int) -> 
     return np.concatenate(cols, axis=1)
 
 
-def medial_distances(
-    V: np.ndarray,
-    F: np.ndarray,
-    *,
-    sdf_rays_per_cone: int = 8,
-    rays_per_ring: int = 8,
-    normals: str = "vertex",
-    frame: str = "principal",
-) -> np.ndarray:
+def medial_distances(V: np.ndarray, F: np.ndarray, settings: DMSSettings | None = None) -> np.ndarray:
     """Raw distances (F, 1 + 3·rays_per_ring) in the mesh's units, before the per-mesh
     normalisation: see `medial_rays`."""
-    return medial_rays(RaySetup(V, F, normals, frame), sdf_rays_per_cone, rays_per_ring)
+    s = settings or DMSSettings()
+    return medial_rays(RaySetup(V, F, s.normals, s.frame), s.sdf_rays_per_cone, s.rays_per_ring)
 
 
 def _columns() -> list[str]:
     return [f"VSI b{b} {s}" for b in BASES for s in STATISTICS]
 
 
-@register("dms", dim=24, columns=_columns())
-def dms(
-    V: np.ndarray,
-    F: np.ndarray,
-    *,
-    sdf_rays_per_cone: int = 8,
-    rays_per_ring: int = 8,
-    normals: str = "vertex",
-    frame: str = "principal",
-    outlier_quantile: float = 0.95,
-) -> np.ndarray:
+@register("dms", dim=24, columns=_columns(), settings=DMSSettings)
+def dms(V: np.ndarray, F: np.ndarray, settings: DMSSettings | None = None) -> np.ndarray:
     """Distance from the medial surface, 24 columns = 4 transforms × 6 statistics.
 
     Per face the 1 + 3·`rays_per_ring` distances of `medial_rays` (the face-to-medial-point
@@ -80,7 +77,8 @@ def dms(
     column is clamped at its `outlier_quantile` over the faces and divided by its maximum; b1
     are these, b2/b4/b8 are log(x·b + 1)/log(b + 1). Order: base, statistic.
     """
-    setup = RaySetup(V, F, normals, frame)
-    S = ray_statistics(medial_rays(setup, sdf_rays_per_cone, rays_per_ring))
+    s = settings or DMSSettings()
+    setup = RaySetup(V, F, s.normals, s.frame)
+    S = ray_statistics(medial_rays(setup, s.sdf_rays_per_cone, s.rays_per_ring))
     S = fill_invalid(S, setup.F, setup.valid)
-    return log_transforms(normalise_columns(S, outlier_quantile)).astype(np.float32)
+    return log_transforms(normalise_columns(S, s.outlier_quantile)).astype(np.float32)

@@ -3,14 +3,26 @@ centres in a geodesic neighbourhood (`pca`, 48 columns)."""
 
 from __future__ import annotations
 
+import dataclasses
+from dataclasses import dataclass
+from typing import NamedTuple
+
 import numpy as np
+import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 from threadpoolctl import threadpool_limits
 
 from meshseg.errors import ConfigError
-from meshseg.features.curvature import clip_outliers, dual_edges, geodesic_balls, kalogerakis_normalize
-from meshseg.features.geometry import face_areas, face_centers, face_dual_graph, farthest_point_sampling
+from meshseg.features.geometry import (
+    clip_outliers,
+    face_areas,
+    face_centers,
+    face_dual_graph,
+    farthest_point_sampling,
+    kalogerakis_normalize,
+)
+from meshseg.features.neighbourhoods import face_neighbours, geodesic_balls
 from meshseg.features.registry import register
 
 PCA_VALUES = (
@@ -29,6 +41,29 @@ PCA_VALUES = (
 )
 PCA_COLUMNS = [f"PCA s{s} {v}" for s in range(4) for v in PCA_VALUES]
 _UPPER = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
+_SITE_BATCH = 64  # sites per batch of truncated Dijkstra runs in `site_ball_moments`
+
+
+@dataclass(frozen=True)
+class PCASettings:
+    """The `pca` group's parameters (see `pca`)."""
+
+    radii: tuple = (0.06, 0.12, 0.30, 0.60)
+    max_neighbors: int = 384
+    min_faces: int = 9
+    site_radius: float = 0.25
+    site_spacing: float = 0.2
+    site_neighbors: int = 4
+    clip: bool = True
+
+
+class _FaceGraph(NamedTuple):
+    """The dual graph Dijkstra runs on (sparse, F x F), each face's edge-adjacent faces ((F, 3), F where
+    none) and the face centres."""
+
+    graph: sp.csr_matrix
+    nbr: np.ndarray
+    centres: np.ndarray
 
 
 def area_moments(c: np.ndarray, a: np.ndarray) -> np.ndarray:
@@ -65,16 +100,7 @@ def pca_values(e: np.ndarray) -> np.ndarray:
     return np.stack([l0, l1, l2, l0 + l1, l0 + l2, l1 + l2, r01, r02, r12, r01 + r02, r01 + r12, r02 + r12], axis=-1)
 
 
-def site_ball_moments(
-    V: np.ndarray,
-    F: np.ndarray,
-    G: np.ndarray,
-    radii,
-    *,
-    spacing: float,
-    neighbors: int = 4,
-    batch: int = 64,
-) -> np.ndarray:
+def site_ball_moments(V: np.ndarray, F: np.ndarray, G: np.ndarray, radii, *, spacing: float, neighbors: int = 4):
     """(F, len(radii), q) sums of the per-face rows G over each face's geodesic ball (plus the ring
     beyond it), for radii at which a ball holds hundreds to thousands of faces.
 
@@ -89,9 +115,8 @@ def site_ball_moments(
     c = face_centers(V, F)
     area = face_areas(V, F).sum()
     radii = [float(r) for r in radii]
-    graph = face_dual_graph(V, F)
-    nbr, _ = dual_edges(V, F)
-    nbr = np.where(nbr < 0, nf, nbr)
+    nbr = face_neighbours(V, F).ids
+    mesh = _FaceGraph(face_dual_graph(V, F), np.where(nbr < 0, nf, nbr), c)
     counts = [int(np.clip(np.ceil(area / (spacing * r) ** 2), 1, nf)) for r in radii]
     # one FPS order serves every radius (a prefix of it is the FPS of that size); a radius that
     # needs as many sites as faces takes every face
@@ -99,11 +124,13 @@ def site_ball_moments(
     out = np.empty((nf, len(radii), G.shape[1]))
     for i, (r, m) in enumerate(zip(radii, counts)):
         sites = np.arange(nf) if m >= nf else fps[:m]
-        out[:, i] = _site_sums(graph, nbr, c, G, sites, r, spacing * r, neighbors, batch)
+        out[:, i] = _site_sums(mesh, G, sites, r, spacing * r, neighbors)
     return out
 
 
-def _site_sums(graph, nbr, c, G, sites, radius, h, neighbors, batch):
+def _site_sums(mesh: _FaceGraph, G, sites, radius, h, neighbors):
+    graph, nbr, c = mesh
+    batch = _SITE_BATCH
     nf = len(c)
     while True:  # a part that no site reaches (a small component FPS skipped) gets its own site
         d1, _, nearest = dijkstra(
@@ -151,52 +178,30 @@ def _site_sums(graph, nbr, c, G, sites, radius, h, neighbors, batch):
     return np.einsum("fk,fkq->fq", w, sums[np.take_along_axis(cand, top, axis=1)])
 
 
-def neighbourhood_moments(
-    V: np.ndarray,
-    F: np.ndarray,
-    G: np.ndarray,
-    radii,
-    *,
-    max_neighbors: int,
-    min_faces: int,
-    site_radius: float,
-    site_spacing: float,
-    site_neighbors: int,
-) -> np.ndarray:
+def neighbourhood_moments(V: np.ndarray, F: np.ndarray, G: np.ndarray, settings: PCASettings) -> np.ndarray:
     """(F, len(radii), q) sums of the per-face rows G over each face's neighbourhood: per face
     (`geodesic_balls`) below `site_radius`, through sites (`site_ball_moments`) from it on."""
-    small = [i for i, r in enumerate(radii) if r < site_radius]
-    large = [i for i, r in enumerate(radii) if r >= site_radius]
+    radii, s = settings.radii, settings
+    small = [i for i, r in enumerate(radii) if r < s.site_radius]
+    large = [i for i, r in enumerate(radii) if r >= s.site_radius]
     S = np.zeros((len(F), len(radii), G.shape[1]))
     if small:
         c = face_centers(V, F)
-        nbr, nbr_len = dual_edges(V, F)
         for rows, J, masks in geodesic_balls(
-            c, nbr, nbr_len, [radii[i] for i in small], max_neighbors=max_neighbors, min_faces=min_faces
+            c, face_neighbours(V, F), [radii[i] for i in small], max_neighbors=s.max_neighbors, min_faces=s.min_faces
         ):
             GJ = G[J]
             for i, mask in zip(small, masks):
                 S[rows, i] = np.einsum("bk,bkq->bq", mask.astype(np.float64), GJ)
     if large:
         S[:, large] = site_ball_moments(
-            V, F, G, [radii[i] for i in large], spacing=site_spacing, neighbors=site_neighbors
+            V, F, G, [radii[i] for i in large], spacing=s.site_spacing, neighbors=s.site_neighbors
         )
     return S
 
 
-@register("pca", 48, version="1", columns=PCA_COLUMNS)
-def pca(
-    V: np.ndarray,
-    F: np.ndarray,
-    *,
-    radii: tuple = (0.06, 0.12, 0.30, 0.60),
-    max_neighbors: int = 384,
-    min_faces: int = 9,
-    site_radius: float = 0.25,
-    site_spacing: float = 0.2,
-    site_neighbors: int = 4,
-    clip: bool = True,
-) -> np.ndarray:
+@register("pca", 48, version="1", columns=PCA_COLUMNS, settings=PCASettings)
+def pca(V: np.ndarray, F: np.ndarray, settings: PCASettings | None = None) -> np.ndarray:
     """Kalogerakis et al. 2010 PCA features, 12 columns per radius (columns.txt 64-111).
 
     Per radius (geodesic, in `kalogerakis_normalize` units): the square roots l0 <= l1 <= l2 of
@@ -208,28 +213,19 @@ def pca(
     `min_faces` always taken); larger radii use `site_ball_moments` (exact at FPS sites spaced
     `site_spacing` x radius, interpolated from `site_neighbors` sites). Per face, no vertex mapping.
     """
-    if len(radii) != 4:
-        raise ConfigError(f"pca: needs 4 radii (the group has 4 x 12 columns), got {list(radii)}")
+    s = settings or PCASettings()
+    if len(s.radii) != 4:
+        raise ConfigError(f"pca: needs 4 radii (the group has 4 x 12 columns), got {list(s.radii)}")
     Vn = kalogerakis_normalize(V, F)
     c = face_centers(Vn, F)
     a = face_areas(Vn, F)
     total = a.sum()
     if not total > 0:
-        return np.zeros((len(F), 12 * len(radii)), np.float32)
-    radii = [float(r) for r in radii]
+        return np.zeros((len(F), 12 * len(s.radii)), np.float32)
+    s = dataclasses.replace(s, radii=[float(r) for r in s.radii])
     with threadpool_limits(limits=1, user_api="blas"):  # many small BLAS calls: threads only add sync overhead
-        S = neighbourhood_moments(
-            Vn,
-            F,
-            area_moments(c, a),
-            radii,
-            max_neighbors=max_neighbors,
-            min_faces=min_faces,
-            site_radius=site_radius,
-            site_spacing=site_spacing,
-            site_neighbors=site_neighbors,
-        )
+        S = neighbourhood_moments(Vn, F, area_moments(c, a), s)
     X = pca_values(covariance_eigenvalues(S, total)).reshape(len(F), -1)
-    if clip:
+    if s.clip:
         X = clip_outliers(X, np.zeros(X.shape[1], bool))
     return X.astype(np.float32)

@@ -19,6 +19,7 @@ from meshseg.errors import ConfigError, MeshDataError
 from meshseg.features.cache import FeatureCache
 from meshseg.features.operators import MeshOperators
 from meshseg.features.registry import get_group
+from meshseg.timing import time_left
 
 log = logging.getLogger(__name__)
 
@@ -156,10 +157,10 @@ def compute_dataset(
     )
     for k, (category, mesh_id, faces, seconds) in enumerate(results, 1):
         n_faces += faces
-        left = (time.perf_counter() - t0) / k * (len(jobs) - k)
+        left = time_left(time.perf_counter() - t0, k, len(jobs) - k)
         log.info(
-            "features %d/%d: %s/%s, %d faces in %.1f s (%.0f faces/s); about %.0f min left",
-            *(k, len(jobs), category, mesh_id, faces, seconds, faces / seconds, left / 60),
+            "features %d/%d: %s/%s, %d faces in %.1f s (%.0f faces/s); %s",
+            *(k, len(jobs), category, mesh_id, faces, seconds, faces / seconds, left),
         )
     elapsed = time.perf_counter() - t0
     log.info("features: %d meshes, %d faces, %.0f faces/s", len(jobs), n_faces, n_faces / elapsed)

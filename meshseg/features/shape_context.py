@@ -30,6 +30,9 @@ exactly (tested).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import NamedTuple
+
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
@@ -91,18 +94,21 @@ def area_radius(geo, fraction: float) -> float:
     return float(np.median(np.take_along_axis(d, order, axis=1)[np.arange(len(d)), k]))
 
 
-def cell_moments(
-    owner: np.ndarray,
-    n_cells: int,
-    area: np.ndarray,
-    centers: np.ndarray,
-    normals: np.ndarray,
-    owner_dist: np.ndarray,
-    fallback_centers: np.ndarray,
-):
+class Cells(NamedTuple):
+    """A partition of the faces into geodesic Voronoi cells: each face's cell (F,), the number of cells,
+    and each face's distance to its cell's sample (F,)."""
+
+    owner: np.ndarray
+    count: int
+    dist: np.ndarray
+
+
+def cell_moments(cells: Cells, area: np.ndarray, centers: np.ndarray, normals: np.ndarray, fallback_centers):
     """Area-weighted statistics of Voronoi cells: area (n,), centroid (n, 3), mean normal (n, 3),
     normal second moment (n, 3, 3) and radial spread sigma (n,) with sigma^2 = E[dist^2] / 2, the
-    variance of a disk-like cell's distances seen from afar."""
+    variance of a disk-like cell's distances seen from afar. `fallback_centers`: the centroids of cells
+    without area."""
+    owner, n_cells, owner_dist = cells
     w = np.bincount(owner, weights=area, minlength=n_cells)
     safe = np.where(w > 0, w, 1.0)
     cen = np.stack([np.bincount(owner, area * centers[:, j], n_cells) for j in range(3)], 1) / safe[:, None]
@@ -149,8 +155,9 @@ class _Histogrammer:
         self.index = {nd: np.searchsorted(self.all_edges, e) for nd, e in self.edges.items()}
         self.soft = soft
 
-    def add(self, H: np.ndarray, d, sigma, lower, w, mu, var) -> None:
-        """H (n, 270) += the cells (n, m) of each row."""
+    def add(self, H: np.ndarray, d, sigma, lower, w, direction) -> None:
+        """H (n, 270) += the cells (n, m) of each row; `direction`: (mu, var) of u . n."""
+        mu, var = direction
         n, m = d.shape
         h = _BOX * sigma if self.soft else np.zeros_like(d)
         c = np.maximum(d, lower)
@@ -243,18 +250,19 @@ def _cell_direction(u: np.ndarray, mn: np.ndarray, nn: np.ndarray):
     return mu, var
 
 
-@register("shape_context", 270, version="1", columns=SC_COLUMNS, shared=True)
-def shape_context(
-    V: np.ndarray,
-    F: np.ndarray,
-    *,
-    n_samples: int = 256,
-    n_near_samples: int = 1024,
-    near_area: float = 0.06,
-    soft_binning: bool = True,
-    scale_calibration: float = 0.861,
-    ops=None,
-) -> np.ndarray:
+@dataclass(frozen=True)
+class ShapeContextSettings:
+    """The `shape_context` group's parameters (see `shape_context`)."""
+
+    n_samples: int = 256
+    n_near_samples: int = 1024
+    near_area: float = 0.06
+    soft_binning: bool = True
+    scale_calibration: float = 0.861
+
+
+@register("shape_context", 270, version="1", columns=SC_COLUMNS, shared=True, settings=ShapeContextSettings)
+def shape_context(V: np.ndarray, F: np.ndarray, settings: ShapeContextSettings | None = None, ops=None) -> np.ndarray:
     """Geodesic shape context (270 columns): six 2D histograms, binning b = (distance bins x angle
     bins) in the order 5x4, 5x6, 5x8, 10x4, 10x6, 10x8, each flattened distance-major (column
     `SC b{b}(..) d{x} a{y}`: distance bin x from the face outwards, angle bin y from -90 degrees).
@@ -269,28 +277,30 @@ def shape_context(
     Meshes of several components: faces of other components are out of reach, as beyond 1.2 D in
     the original; weights stay fractions of the whole mesh's area.
     """
-    geo = shared_geodesics(V, F, n_samples, ops)  # the same Dijkstra run as `agd`'s
+    s = settings or ShapeContextSettings()
+    geo = shared_geodesics(V, F, s.n_samples, ops)  # the same Dijkstra run as `agd`'s
     nf = len(F)
     C, N, a = geo.centers, geo.normals, geo.area
     S = len(geo.samples)
     counts = np.bincount(geo.owner, minlength=S).astype(np.float64)
-    D = max(geodesic_scale(geo.dist, counts, scale_calibration), 1e-12)
+    D = max(geodesic_scale(geo.dist, counts, s.scale_calibration), 1e-12)
     dmax = MAX_DISTANCE * D
     # the near field: the geodesic radius that holds `near_area` of the surface
-    rho = area_radius(geo, near_area) if n_near_samples > 0 and near_area > 0 else 0.0
-    hist = _Histogrammer(dmax, soft_binning)
-    cw, cc, cmn, cnn, csig = cell_moments(geo.owner, S, a, C, N, geo.owner_dist, C[geo.samples])
+    rho = area_radius(geo, s.near_area) if s.n_near_samples > 0 and s.near_area > 0 else 0.0
+    hist = _Histogrammer(dmax, s.soft_binning)
+    cw, cc, cmn, cnn, csig = cell_moments(Cells(geo.owner, S, geo.owner_dist), a, C, N, C[geo.samples])
 
     # near field: the fine cells within rho of each face, padded to (nf, K)
     if rho > 0:
-        fine = farthest_point_sampling(C, min(int(n_near_samples), nf))
+        fine = farthest_point_sampling(C, min(int(s.n_near_samples), nf))
         fd, _, fsrc = dijkstra(geo.graph, directed=False, indices=fine, min_only=True, return_predecessors=True)
         slot = np.full(nf, -1)
         slot[fine] = np.arange(len(fine))
         reached = fsrc >= 0  # a face no fine sample reaches stays with its coarse cell only
         fown = np.where(reached, slot[np.maximum(fsrc, 0)], 0)
         fa = np.where(reached, a, 0.0)
-        fw, fc, fmn, fnn, fsig = cell_moments(fown, len(fine), fa, C, N, np.where(reached, fd, 0.0), C[fine])
+        fine_cells = Cells(fown, len(fine), np.where(reached, fd, 0.0))
+        fw, fc, fmn, fnn, fsig = cell_moments(fine_cells, fa, C, N, C[fine])
         t, i, d = _near_pairs(geo.graph, fine, rho, nf)
         w = np.maximum(fw[t] - np.where(fown[i] == t, fa[i], 0.0), 0.0)  # the face itself is not counted
         # the fine cells near a face stand for that much of the coarse cell their sample lies in
@@ -314,13 +324,11 @@ def shape_context(
             w[~reach] = 0.0
             d[~reach] = 2 * dmax
             w /= np.maximum(d, rho) / D + WEIGHT_OFFSET
-            mu, var = far_dir(Ci)
-            hist.add(H[lo:hi], d, np.broadcast_to(csig, d.shape), rho, w, mu, var)
+            hist.add(H[lo:hi], d, np.broadcast_to(csig, d.shape), rho, w, far_dir(Ci))
             if mask.shape[1]:  # near field
                 tt, dd = nt[lo:hi], nd_[lo:hi]
                 ww = np.where(mask[lo:hi], nw[lo:hi], 0.0) / (dd / D + WEIGHT_OFFSET)
                 u = fc[tt] - Ci[:, None, :]
                 u /= np.maximum(np.linalg.norm(u, axis=2, keepdims=True), 1e-12)
-                mu, var = _cell_direction(u, fmn[tt], fnn[tt])
-                hist.add(H[lo:hi], dd, fsig[tt], 0.0, ww, mu, var)
+                hist.add(H[lo:hi], dd, fsig[tt], 0.0, ww, _cell_direction(u, fmn[tt], fnn[tt]))
     return H

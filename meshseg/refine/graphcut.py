@@ -32,7 +32,7 @@ from meshseg.features.geometry import edge_face_pairs, face_centers, per_face_no
 _MAX_TERM = 1_000_000
 
 
-def dual_edges(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def dihedral_edges(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The face dual graph with its geometry: (pairs (E, 2) with pairs[:, 0] < pairs[:, 1],
     angle (E,), length (E,)).
 
@@ -68,7 +68,7 @@ def _runs_forward(faces: np.ndarray, edge: np.ndarray) -> np.ndarray:
 
 
 def edge_theta(angle: np.ndarray, convex_factor: float = 0.08, theta_eps: float = 1e-3) -> np.ndarray:
-    """The theta of -log(theta/pi) from signed exterior dihedral angles (`dual_edges`).
+    """The theta of -log(theta/pi) from signed exterior dihedral angles (`dihedral_edges`).
 
     Concave edges: theta = |angle| (pi at a knife-sharp valley: free to cut; 0 on flat surface).
     Convex edges: theta = convex_factor * |angle| (1: treat a ridge like a valley of the same angle;

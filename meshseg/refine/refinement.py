@@ -12,6 +12,8 @@ own group parameters), and is called as `refinement(mesh, probabilities, feature
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from meshseg.data.mesh import Mesh
@@ -65,24 +67,37 @@ class Argmax(Refinement):
         return P.argmax(axis=1)
 
 
+# The graph cuts are dataclasses: their fields are their settings (the keys of conf/refine/*.yaml), so a
+# setting a class does not take is refused by name when it is built.
+@dataclass
 class GraphCut(Refinement):
     """Alpha-expansion (Boykov et al. 2001) over the face dual graph; subclasses give the smoothness
     weight of each dual edge."""
 
-    # explicit arguments in every subclass: a setting a class does not take is refused by name
-    def __init__(self, lam=2.0, eps=1e-6, convex_factor=0.08, theta_eps=1e-3, n_iter=-1):
+    lam: float = 2.0
+    eps: float = 1e-6
+    convex_factor: float = 0.08
+    theta_eps: float = 1e-3
+    n_iter: int = -1
+
+    def __post_init__(self):
         _check(
             self.name,
             [
-                ("lam", lam, float(lam) >= 0, ">= 0"),
-                ("eps", eps, 0 < float(eps) < 1, "in (0, 1)"),
-                ("convex_factor", convex_factor, float(convex_factor) >= 0, ">= 0"),
-                ("theta_eps", theta_eps, 0 < float(theta_eps) <= 1, "in (0, 1]"),
-                ("n_iter", n_iter, int(n_iter) == -1 or int(n_iter) >= 1, "-1 (until converged) or >= 1"),
+                ("lam", self.lam, float(self.lam) >= 0, ">= 0"),
+                ("eps", self.eps, 0 < float(self.eps) < 1, "in (0, 1)"),
+                ("convex_factor", self.convex_factor, float(self.convex_factor) >= 0, ">= 0"),
+                ("theta_eps", self.theta_eps, 0 < float(self.theta_eps) <= 1, "in (0, 1]"),
+                (
+                    "n_iter",
+                    self.n_iter,
+                    int(self.n_iter) == -1 or int(self.n_iter) >= 1,
+                    "-1 (until converged) or >= 1",
+                ),
             ],
         )
-        self.lam, self.eps, self.n_iter = float(lam), float(eps), int(n_iter)
-        self.convex_factor, self.theta_eps = float(convex_factor), float(theta_eps)
+        self.lam, self.eps, self.n_iter = float(self.lam), float(self.eps), int(self.n_iter)
+        self.convex_factor, self.theta_eps = float(self.convex_factor), float(self.theta_eps)
 
     def weights(self, mesh, pairs, theta, length, features) -> np.ndarray:
         raise NotImplementedError
@@ -90,21 +105,22 @@ class GraphCut(Refinement):
     def labels(self, mesh, P, features):
         if self.lam == 0.0:
             return P.argmax(axis=1)
-        pairs, angle, length = graphcut.dual_edges(mesh.vertices, mesh.faces)
+        pairs, angle, length = graphcut.dihedral_edges(mesh.vertices, mesh.faces)
         theta = graphcut.edge_theta(angle, self.convex_factor, self.theta_eps)
         weights = self.weights(mesh, pairs, theta, length, features)
         return graphcut.alpha_expansion(P, pairs, weights, self.lam, self.eps, self.n_iter)
 
 
+@dataclass
 class GraphCutClassic(GraphCut):
     """Smoothness -log(theta/pi) * phi, phi the shared edge's length (Shapira et al. 2008)."""
 
     name = "graphcut_classic"
+    length_norm: str = "mean"
 
-    def __init__(self, lam=2.0, eps=1e-6, convex_factor=0.08, theta_eps=1e-3, n_iter=-1, length_norm: str = "mean"):
-        super().__init__(lam, eps, convex_factor, theta_eps, n_iter)
-        _check(self.name, [("length_norm", length_norm, length_norm in ("mean", "none"), "mean or none")])
-        self.length_norm = length_norm
+    def __post_init__(self):
+        super().__post_init__()
+        _check(self.name, [("length_norm", self.length_norm, self.length_norm in ("mean", "none"), "mean or none")])
 
     def weights(self, mesh, pairs, theta, length, features):
         # phi in units of the mesh's mean edge length: lam means the same at any scale
@@ -112,24 +128,25 @@ class GraphCutClassic(GraphCut):
         return graphcut.classic_weights(theta, phi)
 
 
+@dataclass
 class GraphCutAGD(GraphCut):
     """The paper's smoothness -log(theta/pi) - omega ||f_u - f_v||, f the mesh's AGD features."""
 
     name = "graphcut_agd"
     needs = ("agd",)
+    omega: float = 2.0
+    feature_norm: str = "std"
 
-    def __init__(
-        self, lam=2.0, eps=1e-6, convex_factor=0.08, theta_eps=1e-3, n_iter=-1, omega=2.0, feature_norm: str = "std"
-    ):
-        super().__init__(lam, eps, convex_factor, theta_eps, n_iter)
+    def __post_init__(self):
+        super().__post_init__()
         _check(
             self.name,
             [
-                ("omega", omega, float(omega) >= 0, ">= 0"),
-                ("feature_norm", feature_norm, feature_norm in ("std", "none"), "std or none"),
+                ("omega", self.omega, float(self.omega) >= 0, ">= 0"),
+                ("feature_norm", self.feature_norm, self.feature_norm in ("std", "none"), "std or none"),
             ],
         )
-        self.omega, self.feature_norm = float(omega), feature_norm
+        self.omega = float(self.omega)
 
     def weights(self, mesh, pairs, theta, length, features):
         f = graphcut.normalize_features(features, self.feature_norm)

@@ -94,20 +94,29 @@ def mesh_groups(
 
 
 class Standardiser:
-    """Per (branch, feature) zero mean and unit variance, fitted on training faces. A constant
-    column (e.g. a CF that is identically 0 on a category) is centred and left unscaled."""
+    """Per (branch, feature) zero mean and unit variance, fitted on training faces (`fit` sets `mean_` and
+    `scale_`, as scikit-learn's StandardScaler). A constant column (e.g. a CF that is identically 0 on a
+    category) is centred and left unscaled."""
 
-    def __init__(self, X: np.ndarray):
+    def fit(self, X: np.ndarray) -> Standardiser:
         X64 = X.astype(np.float64, copy=False)
-        self.mean = X64.mean(axis=0).astype(np.float32)
+        self.mean_ = X64.mean(axis=0).astype(np.float32)
         std = X64.std(axis=0)
-        self.scale = np.where(std > 1e-12, std, 1.0).astype(np.float32)
+        self.scale_ = np.where(std > 1e-12, std, 1.0).astype(np.float32)
+        return self
 
-    def __call__(self, X: np.ndarray) -> np.ndarray:
+    def transform(self, X: np.ndarray) -> np.ndarray:
         """Standardise in place (X is the caller's fresh array) and return it."""
-        X -= self.mean
-        X /= self.scale
+        X -= self.mean_
+        X /= self.scale_
         return X
+
+    def __setstate__(self, state: dict) -> None:
+        # the models of older runs (their `model/` artifacts) pickled the fitted state as `mean` and `scale`
+        self.__dict__.update({_FITTED.get(k, k): v for k, v in state.items()})
+
+
+_FITTED = {"mean": "mean_", "scale": "scale_"}
 
 
 @dataclass
@@ -166,8 +175,8 @@ def build_train(
         total += mesh.n_faces
     with source.timings("standardise"):
         X = np.concatenate(xs)
-        standardiser = Standardiser(X)
-        X = standardiser(X)
+        standardiser = Standardiser().fit(X)
+        X = standardiser.transform(X)
     n_classes = len(source.dataset.label_names(source.category))
     epoch_rows = None if epochs is None else tuple(np.concatenate(rows) for rows in per_epoch)
     return TrainSet(X, np.concatenate(ys).astype(np.int64), standardiser, total, n_classes, epoch_rows)
@@ -179,7 +188,7 @@ def iter_test_inputs(source: FeatureSource, mesh_ids, standardiser: Standardiser
     for mesh_id in mesh_ids:
         mesh, scales = source.load(mesh_id)
         with source.timings("standardise"):
-            X = standardiser(np.stack(scales, axis=1))
+            X = standardiser.transform(np.stack(scales, axis=1))
         yield mesh, X
 
 

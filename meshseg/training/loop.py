@@ -15,6 +15,7 @@ from pytorch_lightning.callbacks import ModelCheckpoint
 from pytorch_lightning.plugins.environments import LightningEnvironment
 from torch import nn
 
+from meshseg.timing import time_left
 from meshseg.training.context import TrainContext
 from meshseg.training.data import FoldDataModule, TrainSet
 
@@ -33,9 +34,9 @@ class EpochLog(pl.Callback):
         now = time.perf_counter()
         took, self.last = now - self.last, now
         done, total = trainer.current_epoch + 1, trainer.max_epochs
-        left = (now - self.start) / (done - self.first) * (total - done)
+        left = time_left(now - self.start, done - self.first, total - done)
         values = ", ".join(f"{k} {float(v):.4g}" for k, v in sorted(trainer.callback_metrics.items()) if v.numel() == 1)
-        log.info("epoch %d/%d: %s; %.1f s, about %.0f s left", done, total, values, took, left)
+        log.info("epoch %d/%d: %s; %.1f s, %s", done, total, values, took, left)
 
 
 def make_trainer(ctx: TrainContext, stage: str = "net") -> pl.Trainer:
