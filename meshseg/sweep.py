@@ -13,6 +13,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from meshseg.data.datasets import build_dataset
 from meshseg.job import build_method, check_config, resolve_fold
+from meshseg.timing import time_left
 
 log = logging.getLogger("meshseg.run")
 
@@ -54,9 +55,8 @@ def job_progress() -> None:
     if not (n and start and HydraConfig.initialized() and HydraConfig.get().job.get("num") is not None):
         return
     k, n, elapsed = int(HydraConfig.get().job.num) + 1, int(n), time.time() - float(start)
-    pace = _PACE["seconds"] / _PACE["jobs"] if _PACE["jobs"] else 0.0
-    left = f", about {pace * (n - k + 1) / 60:.0f} min left" if pace else ""
-    log.info("job %d/%d (%.0f min into the sweep%s)", k, n, elapsed / 60, left)
+    left = time_left(_PACE["seconds"], _PACE["jobs"], n - k + 1)
+    log.info("job %d/%d (%.0f min into the sweep%s)", k, n, elapsed / 60, f", {left}" if left else "")
 
 
 def job_done(seconds: float) -> None:

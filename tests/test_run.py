@@ -371,7 +371,7 @@ def test_killed_sweep_resumes_doing_only_what_is_missing(store):
     skipped = re.findall(r"skip: table f(\d) · cnn1d 3B local", out)
     assert sorted(before) == sorted(skipped)
     # progress: each job says where the sweep is; the sweep ends with what it did and the accuracy so far
-    jobs = re.findall(r"job (\d)/5 \([^)]*?(, about \d+ min left)?\)", out)
+    jobs = re.findall(r"job (\d)/5 \([^)]*?(, about \d+ (?:s|min) left)?\)", out)
     assert [k for k, _ in jobs] == ["1", "2", "3", "4", "5"]
     # the time left is paced by the jobs that ran: none before the first fold this sweep trains
     first_run = min({"0", "1", "2", "3", "4"} - set(before))
