@@ -172,8 +172,7 @@ def _skipped(name: str, chash: str, holder) -> float:
     """Log why a fold is not run (its config is FINISHED, or a live process runs it); its accuracy or NaN."""
     from meshseg.tracking import FoldRecord
 
-    metrics = FoldRecord.upgrade(holder.data.metrics)[0]  # a run logged under the earlier names too
-    acc = metrics.get(FoldRecord.ACC, float("nan"))
+    acc = holder.data.metrics.get(FoldRecord.ACC, float("nan"))
     if holder.info.status == "FINISHED":
         log.info(
             "skip: %s — config %s already has FINISHED run %s (test/acc %.4f)", name, chash, holder.info.run_id, acc
@@ -208,7 +207,7 @@ def run(cfg: DictConfig) -> float:
 def run_fold(cfg: DictConfig) -> Outcome:
     """One fold: skip if its config already has a FINISHED run (or a live one), else resolve -> fit and
     predict -> refine -> score -> record."""
-    from meshseg.tracking import FoldRecord, Tracker, fold_identity, system_tags
+    from meshseg.tracking import FoldRecord, Lease, RunKey, Tracker, fold_identity, system_tags
 
     # resolve: every setting checked, the fold's identity, and whether it has run already
     t0 = time.perf_counter()
@@ -219,27 +218,31 @@ def run_fold(cfg: DictConfig) -> Outcome:
     features, refinement = FeatureSet.from_config(cfg.features), build_refinement(cfg.refine)
     config, chash = fold_identity(cfg, category, fold, dataset.data_hash)
     split = split_name(cfg.split)
-    name = FoldRecord.name(category, fold.index, cfg.model.name, cfg.branches, features.name, split, cfg.budget.name)
+    key = RunKey(
+        dataset=dataset.name,
+        category=category,
+        model=cfg.model.name,
+        branches=cfg.branches,
+        features=features.name,
+        split=split,
+        fold=fold.index,
+        refine=cfg.refine.name,
+        budget=cfg.budget.name,
+        config_hash=chash,
+        data_hash=dataset.data_hash,
+    )
+    name = key.name
     tracker = Tracker(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_dir)
     done = tracker.finished(chash) if cfg.tracking.skip_finished else None
     if done is not None:
         return Outcome(category, fold.index, _skipped(name, chash, done), True)
-    tags = FoldRecord.tags(
-        cfg,
-        dataset=dataset,
-        category=category,
-        fold=fold,
-        features=features.name,
-        split=split,
-        config_hash=chash,
-        overrides=job_overrides(),
-    )
+    tags = FoldRecord.tags(key, fold, seed=cfg.seed, accelerator=cfg.trainer.accelerator, overrides=job_overrides())
     command = " ".join(["python -m meshseg.run", *(job_overrides() or [])])
     tags.update(system_tags("meshseg.run", command, tags["git_sha"]), **sweep_tag())
     with terminate_interrupts():  # from the claim on: SIGTERM ends the run KILLED wherever it lands
         run_id = None
         if cfg.tracking.skip_finished:  # claim the config: a concurrent sweep may have taken it since the check
-            run_id, holder = tracker.claim(name, tags, cfg.tracking.heartbeat_s, cfg.tracking.lease_timeout_s)
+            run_id, holder = tracker.claim(name, tags, Lease(cfg.tracking.heartbeat_s, cfg.tracking.lease_timeout_s))
             if run_id is None:
                 return Outcome(category, fold.index, _skipped(name, chash, holder), True)
         outcome = _recorded(cfg, config, tags, tracker, name, run_id, dataset, fold, features, refinement)
