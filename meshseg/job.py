@@ -24,12 +24,11 @@ CHECKPOINTS = (True, False, "auto")  # tracking.checkpoints
 @dataclass(frozen=True)
 class FoldJob:
     """A fold resolved: the data it trains and tests on, the method's parts (built, not fitted), and how
-    its run is recorded. `config` is the fold's resolved config, its identity (`config_hash`)."""
+    its run is recorded. `config` is the fold's resolved config, its identity (`key.config_hash`)."""
 
+    key: object  # meshseg.tracking.RunKey: its identity (config hash), tags and name
     dataset: MeshDataset
-    category: str
     fold: Fold
-    split: str  # the split's tag: loo, 5fold, fixed
     features: FeatureSet
     fitter: object  # meshseg.training.fitters.Fitter, built (its settings checked), not fitted
     refinement: object  # meshseg.refine.Refinement
@@ -41,15 +40,13 @@ class FoldJob:
     checkpoints: Path | None  # per-epoch checkpoints (a killed fold resumes from them), or none
     tracking: dict  # the tracking settings (store, leases, what to log)
     config: dict
-    config_hash: str
-    name: str  # the run's name
     tags: dict
 
     @classmethod
     def from_config(cls, cfg: DictConfig, overrides: list[str] | None = None) -> FoldJob:
         """The fold job a run config describes, every setting checked; nothing computed, no run created.
         `overrides`: the command line's (recorded as provenance)."""
-        from meshseg.tracking import FoldRecord, fold_identity
+        from meshseg.tracking import FoldRecord, RunKey, fold_identity
 
         check_config(cfg)
         # resolved once (${...} evaluated): the parts are built from the very values the identity hashes
@@ -58,22 +55,23 @@ class FoldJob:
         method = build_method(run)
         category, fold = resolve_fold(run, dataset, method.split)
         config, chash = fold_identity(run, category, fold, dataset.data_hash)
-        split, features = method.split.name, method.features.name
-        tags = FoldRecord.tags(
-            run,
-            dataset=dataset,
+        key = RunKey(
+            dataset=dataset.name,
             category=category,
-            fold=fold,
-            features=features,
-            split=split,
+            model=run.model.name,
+            branches=run.branches,
+            features=method.features.name,
+            split=method.split.name,
+            fold=fold.index,
+            refine=run.refine.name,
+            budget=run.budget.name,
             config_hash=chash,
-            overrides=overrides,
+            data_hash=dataset.data_hash,
         )
         return cls(
+            key=key,
             dataset=dataset,
-            category=category,
             fold=fold,
-            split=split,
             features=method.features,
             fitter=method.fitter,
             refinement=method.refinement,
@@ -85,9 +83,7 @@ class FoldJob:
             checkpoints=checkpoint_dir(run, chash),
             tracking=config["tracking"],
             config=config,
-            config_hash=chash,
-            name=FoldRecord.name(category, fold.index, run.model.name, run.branches, features, split, run.budget.name),
-            tags=tags,
+            tags=FoldRecord.tags(key, fold, seed=run.seed, accelerator=run.trainer.accelerator, overrides=overrides),
         )
 
 

@@ -32,7 +32,7 @@ from omegaconf import OmegaConf
 
 from meshseg.data.io import check_output_folder
 from meshseg.errors import ConfigError, MeshsegError
-from meshseg.tracking import FoldRecord, Tracker, check_store_exists, fold_identity
+from meshseg.tracking import FoldRecord, RunKey, Tracker, check_store_exists, fold_identity
 
 log = logging.getLogger(__name__)
 
@@ -47,8 +47,7 @@ def _portable(tags: dict) -> dict:
 
 def run_name(tags: dict) -> str:
     """A fold run's name by today's format (records made before it carry an earlier one)."""
-    t = tags
-    return FoldRecord.name(t["category"], t["fold"], t["model"], t["branches"], t["features"], t["split"], t["budget"])
+    return RunKey.from_tags(tags).name
 
 
 def record_of(tracker: Tracker, run) -> dict:
@@ -56,8 +55,8 @@ def record_of(tracker: Tracker, run) -> dict:
     import yaml
 
     run_id = run.info.run_id
-    metrics, counts = FoldRecord.upgrade(run.data.metrics)  # a run logged under earlier metric names too
-    counts.update({k: int(v) for k, v in run.data.params.items() if k.startswith("n_")})
+    metrics = run.data.metrics
+    counts = {k: int(v) for k, v in run.data.params.items() if k.startswith("n_")}
     config = yaml.safe_load(Path(tracker.client.download_artifacts(run_id, FoldRecord.CONFIG)).read_text())
     with open(tracker.client.download_artifacts(run_id, FoldRecord.PER_MESH), newline="") as f:
         rows = [
@@ -271,8 +270,7 @@ def _fill(tracker: Tracker, run_id: str, record: dict) -> None:
     """A claimed run made into the record's FINISHED run: params, metrics, config and per-mesh table."""
     from mlflow.entities import Metric, Param
 
-    metrics, counts = FoldRecord.upgrade(record["metrics"])  # records exported under earlier names too
-    counts.update(record.get("counts", {}))
+    metrics, counts = record["metrics"], record.get("counts", {})
     params = {**FoldRecord.params(record["config"]), **counts}
     params = [Param(k, str(v)[:6000]) for k, v in params.items()]
     t = record["end_time"] or record["start_time"]

@@ -51,7 +51,7 @@ class FoldOutcome:
 def run(cfg: DictConfig) -> FoldOutcome:
     """One fold: resolve it (every setting checked, its identity); skip it if its config already has a
     FINISHED run (or a live one); else claim it and record it from start to FINISHED, FAILED or KILLED."""
-    from meshseg.tracking import Tracker, system_tags
+    from meshseg.tracking import Lease, Tracker, system_tags
 
     start = time.perf_counter()
     job_progress()
@@ -60,7 +60,7 @@ def run(cfg: DictConfig) -> FoldOutcome:
     job = FoldJob.from_config(cfg, overrides)
     t = job.tracking
     tracker = Tracker(t["uri"], t["experiment"], t["artifact_dir"])
-    holder = tracker.finished(job.config_hash) if t["skip_finished"] else None
+    holder = tracker.finished(job.key.config_hash) if t["skip_finished"] else None
     if holder is not None:
         return skipped(job, holder)
     command_line = " ".join(["python -m meshseg.run", *(overrides or [])])
@@ -68,25 +68,29 @@ def run(cfg: DictConfig) -> FoldOutcome:
     with terminate_interrupts():  # from the claim on: SIGTERM ends the run KILLED wherever it lands
         run_id = None
         if t["skip_finished"]:  # claim the config: a concurrent sweep may have taken it since the check
-            run_id, holder = tracker.claim(job.name, tags, t["heartbeat_s"], t["lease_timeout_s"])
+            run_id, holder = tracker.claim(job.key.name, tags, Lease(t["heartbeat_s"], t["lease_timeout_s"]))
             if run_id is None:
                 return skipped(job, holder)
         acc = recorded(job, tags, tracker, run_id)
     job_done(time.perf_counter() - start)
-    return FoldOutcome(job.category, job.fold.index, acc, False)
+    return FoldOutcome(job.key.category, job.fold.index, acc, False)
 
 
 def recorded(job: FoldJob, tags: dict, tracker, run_id: str | None) -> float:
     """The fold's run (`run_id`: claimed, or None for a new one) around `fold`; its test accuracy."""
     from meshseg.tracking import FoldRecord
 
-    with tracker.run(job.name, tags, FoldRecord.params(job.config), run_id) as run_id:
+    with tracker.run(job.key.name, tags, FoldRecord.params(job.config), run_id) as run_id:
         fold = job.fold
         log.info(
-            "run: %s (config %s, %d train / %d test meshes)", job.name, job.config_hash, len(fold.train), len(fold.test)
+            "run: %s (config %s, %d train / %d test meshes)",
+            job.key.name,
+            job.key.config_hash,
+            len(fold.train),
+            len(fold.test),
         )
         log.info("run %s: %s", run_id, tracker.run_url(run_id))
-        tracker.log_dataset(run_id, f"{job.dataset.name}/{job.category}", job.dataset.data_hash, job.dataset.source)
+        tracker.log_dataset(run_id, f"{job.dataset.name}/{job.key.category}", job.dataset.data_hash, job.dataset.source)
         try:
             with system_metrics(tracker, run_id, job.tracking.get("system_metrics")):
                 metrics = fold_recipe(job, tracker, run_id)
@@ -98,7 +102,7 @@ def recorded(job: FoldJob, tags: dict, tracker, run_id: str | None) -> float:
     acc = metrics[FoldRecord.ACC]
     log.info(
         "done: %s test/acc %.4f (raw %.4f), train %.1f s, run %s",
-        job.name,
+        job.key.name,
         acc,
         metrics[FoldRecord.ACC_RAW],
         metrics["time/train_s"],
@@ -116,7 +120,7 @@ def fold_recipe(job: FoldJob, tracker, run_id: str) -> dict:
     from meshseg.training.fit import fit_predict
 
     # features, fit, predict: the fit logs to the run and checkpoints under the fold's config hash
-    source = FeatureSource(job.dataset, job.category, job.features, job.cache_dir, job.branches, job.ring_adjacency)
+    source = FeatureSource(job.dataset, job.key.category, job.features, job.cache_dir, job.branches, job.ring_adjacency)
     fitter = job.fitter
     fitter.context = dataclasses.replace(
         fitter.context, logger=tracker.lightning_logger(run_id), checkpoint_dir=job.checkpoints and str(job.checkpoints)
@@ -146,7 +150,7 @@ def fold_recipe(job: FoldJob, tracker, run_id: str) -> dict:
         tracker.log_fold(run_id, OmegaConf.to_yaml(job.config), rows, arrays)
         if log_model:
             about = {"run_id": run_id, **{k: job.tags[k] for k in ABOUT_MODEL}}
-            label_names = job.dataset.label_names(job.category)
+            label_names = job.dataset.label_names(job.key.category)
             tracker.log_model(run_id, FoldModel.of_fold(job.config, preds, label_names, about))
     if renders:
         log.info("rendering %d test meshes", min(renders, len(preds.meshes)))
@@ -167,17 +171,21 @@ def skipped(job: FoldJob, holder) -> FoldOutcome:
     if holder.info.status == "FINISHED":
         log.info(
             "skip: %s — config %s already has FINISHED run %s (test/acc %.4f)",
-            job.name,
-            job.config_hash,
+            job.key.name,
+            job.key.config_hash,
             holder.info.run_id,
             acc,
         )
     else:
         owner = holder.data.tags.get("lease.owner", "?")
         log.info(
-            "skip: %s — config %s is being run by run %s (%s)", job.name, job.config_hash, holder.info.run_id, owner
+            "skip: %s — config %s is being run by run %s (%s)",
+            job.key.name,
+            job.key.config_hash,
+            holder.info.run_id,
+            owner,
         )
-    return FoldOutcome(job.category, job.fold.index, acc, True)
+    return FoldOutcome(job.key.category, job.fold.index, acc, True)
 
 
 @contextmanager

@@ -20,7 +20,7 @@ from hydra import compose, initialize_config_dir
 from mlflow import MlflowClient
 
 from meshseg import CONF_DIR
-from meshseg.tracking import CONTRACT_TAGS, config_hash, flatten
+from meshseg.tracking import FoldRecord, config_hash, flatten
 
 SMALL = ["dataset.meshes_per_category=5", "features.groups=[curvature,pca,gc]", "features.name=local", "budget=smoke"]
 
@@ -198,7 +198,7 @@ def test_one_run_follows_the_tracking_contract_and_reruns_skip(store):
     epochs = re.findall(r"epoch (\d)/2: train/acc \S+, train/loss \S+, train/lr \S+; \S+ s, about \d+ s left", out)
     assert epochs == ["1", "2"], out[-3000:]
     tags = run.data.tags
-    assert set(CONTRACT_TAGS) <= set(tags)
+    assert set(FoldRecord.TAGS) <= set(tags)
     assert (
         tags["dataset"],
         tags["category"],

@@ -16,7 +16,18 @@ from test_run import store as store  # noqa: F401  (a fixture)
 
 from meshseg.data.splits import Fold
 from meshseg.errors import TrackingError
-from meshseg.tracking import LEASE_HEARTBEAT, LEASE_OWNER, Tracker, fold_identity, store_uri
+from meshseg.tracking import (
+    LEASE_HEARTBEAT,
+    LEASE_OWNER,
+    FoldRecord,
+    Lease,
+    RunKey,
+    Tracker,
+    fold_identity,
+    search_runs,
+    store_uri,
+)
+from meshseg.tracking.store import retry
 
 
 def test_processes_opening_a_new_sqlite_store_at_once_all_succeed(tmp_path):
@@ -76,7 +87,7 @@ def test_a_lease_of_a_dead_process_on_this_host_is_taken_over_at_once(tmp_path):
 def test_finished_config_is_never_claimed_and_the_run_beats(tmp_path):
     t = _tracker(tmp_path)
     tags = {"config_hash": "abc"}
-    run_id, _ = t.claim("fold 0", tags, heartbeat_s=0.2, lease_timeout_s=5)
+    run_id, _ = t.claim("fold 0", tags, Lease(heartbeat_s=0.2, timeout_s=5))
     before = float(t.client.get_run(run_id).data.tags[LEASE_HEARTBEAT])
     with t.run("fold 0", tags, {}, run_id):
         time.sleep(1.5)
@@ -144,7 +155,7 @@ def test_sigterm_mid_run_ends_the_run_killed(store):
 def test_an_interrupt_waits_for_the_store_call_under_way(tmp_path, monkeypatch):
     """SIGTERM landing inside a store write: raised there, it left sqlite's write transaction open in this
     process, and ending the run KILLED then failed on 'database is locked'. It must come after the call."""
-    from meshseg.run import terminate_interrupts
+    from meshseg.signals import terminate_interrupts
 
     t = _tracker(tmp_path)
     run_id = t._create("fold 0", {}).info.run_id
@@ -281,8 +292,6 @@ def test_a_server_that_stops_answering_is_one_tracking_error(monkeypatch):
     TrackingError naming what was being logged (not MLflow's page-long exception)."""
     from mlflow import MlflowClient
 
-    from meshseg.tracking import _retry
-
     monkeypatch.setenv("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "0")
     with socket.socket() as s:  # a port nobody listens on
         s.bind(("127.0.0.1", 0))
@@ -291,7 +300,7 @@ def test_a_server_that_stops_answering_is_one_tracking_error(monkeypatch):
     with pytest.raises(
         TrackingError, match=r"^log metrics: the tracking server stopped answering \(Connection refused\)"
     ):
-        _retry(lambda: client.get_experiment_by_name("meshseg"), "log metrics")
+        retry(lambda: client.get_experiment_by_name("meshseg"), "log metrics")
 
 
 def test_two_folds_logging_one_dataset_at_once_both_get_it(tmp_path, monkeypatch):
@@ -318,13 +327,11 @@ def test_two_folds_logging_one_dataset_at_once_both_get_it(tmp_path, monkeypatch
     (got,) = tracker.client.get_run(run_id).inputs.dataset_inputs
     assert (got.dataset.name, got.dataset.digest) == ("psb/Cup", "835d58916a158212")
 
-    from meshseg.tracking import _retry
-
     def collide():
         raise RestException(dup)
 
     with pytest.raises(RestException, match="unique constraint"):
-        _retry(collide, "log metrics")
+        retry(collide, "log metrics")
 
 
 def test_a_sqlite_store_keeps_its_artifacts_beside_its_database(tmp_path):
@@ -341,3 +348,34 @@ def test_a_sqlite_store_keeps_its_artifacts_beside_its_database(tmp_path):
     assert (
         elsewhere.client.get_experiment(elsewhere.experiment_id).artifact_location == (tmp_path / "elsewhere").as_uri()
     )
+
+
+def test_search_runs_reads_every_page_and_never_creates_an_experiment(tmp_path, monkeypatch):
+    """The report's read of a store: every page of a search (here one run a page), only the runs the filter
+    matches, and [] for an experiment the store does not have, which stays absent."""
+    from mlflow import MlflowClient
+
+    t = _tracker(tmp_path)
+    mine = {t._create(f"fold {i}", {"config_hash": "abc"}).info.run_id for i in range(3)}
+    t._create("other", {"config_hash": "xyz"})
+    real, pages = MlflowClient.search_runs, []
+
+    def one_a_page(self, experiment_ids, filter_string="", **kwargs):
+        pages.append(kwargs.get("page_token"))
+        return real(self, experiment_ids, filter_string, **{**kwargs, "max_results": 1})
+
+    monkeypatch.setattr(MlflowClient, "search_runs", one_a_page)
+    assert {r.info.run_id for r in search_runs(t.uri, "meshseg", "tags.config_hash = 'abc'")} == mine
+    assert len(pages) >= 3 and pages[0] is None and all(pages[1:])  # a page per run, maybe an empty last
+    assert {r.info.run_id for r in t.runs("tags.config_hash = 'abc'")} == mine  # Tracker.runs pages alike
+    assert len(search_runs(t.uri, "meshseg")) == 4
+    assert search_runs(t.uri, "nothing here") == []
+    assert MlflowClient(t.uri).get_experiment_by_name("nothing here") is None
+
+
+def test_a_run_key_names_the_run_and_reads_back_from_its_tags():
+    key = RunKey("psb", "Glasses", "cnn1d", 3, "f800", "5fold", 2, "graphcut_agd", "cpu", "abc", "d")
+    assert key.name == "Glasses f2 · cnn1d 3B f800 · 5fold · cpu"
+    tags = {k: str(v) for k, v in vars(key).items()} | {"git_sha": "x", "seed": "0"}
+    assert RunKey.from_tags(tags) == key
+    assert set(vars(key)) == set(FoldRecord.TAGS) - {"git_sha"}  # the key is the tags a report selects by

@@ -1,0 +1,89 @@
+"""Where and with what a run ran: the git commit, the machine, the package versions, the SLURM job, and
+MLflow's own run fields that its UI shows."""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+
+def system_tags(source: str, command: str, git: str) -> dict[str, str]:
+    """MLflow's own run fields, which its UI shows: source, user, git commit, and the command line as the
+    run's description (`mlflow.note.content`)."""
+    import getpass
+
+    try:
+        user = getpass.getuser()
+    except (KeyError, OSError):  # no name for this uid (some containers)
+        user = "unknown"
+    sha = git.removesuffix("+dirty")
+    return {
+        "mlflow.source.name": source,
+        "mlflow.source.type": "JOB" if slurm_job() else "LOCAL",
+        "mlflow.user": user,
+        **({"mlflow.source.git.commit": sha} if sha != "unknown" else {}),
+        "mlflow.note.content": f"`{command}`",
+    }
+
+
+def slurm_job() -> str | None:
+    """The SLURM job running this process (array jobs as <array job>_<task>), or None outside SLURM."""
+    import os
+
+    env = os.environ
+    if env.get("SLURM_ARRAY_JOB_ID") and env.get("SLURM_ARRAY_TASK_ID"):
+        return f"{env['SLURM_ARRAY_JOB_ID']}_{env['SLURM_ARRAY_TASK_ID']}"
+    return env.get("SLURM_JOB_ID")
+
+
+def machine(accelerator: str = "cpu") -> str:
+    """What ran it: the CPU model and its cores, and the GPU where one trained."""
+    import os
+    import platform
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), cpu)
+    except OSError:
+        pass
+    text = f"{cpu}, {os.cpu_count()} cores"
+    if accelerator == "gpu":
+        import torch
+
+        if torch.cuda.is_available():
+            text += f", {torch.cuda.get_device_name()}"
+    return text
+
+
+def versions() -> str:
+    """The versions of Python and the packages that shape a result."""
+    import platform
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = [f"python {platform.python_version()}"]
+    for name in ("meshseg", "torch", "numpy", "scipy", "scikit-learn", "pytorch-lightning", "mlflow"):
+        try:
+            out.append(f"{name} {version(name)}")
+        except PackageNotFoundError:
+            pass
+    return ", ".join(out)
+
+
+def git_sha() -> str:
+    """The package's git commit, '+dirty' when tracked files differ from it; 'unknown' outside git."""
+    root = Path(__file__).resolve().parents[2]
+    try:
+        sha = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            cwd=root,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+    return sha + ("+dirty" if dirty else "")

@@ -1,0 +1,136 @@
+"""What one fold's run records, defined once: `meshseg.run` writes it; the report, `reproduce`,
+`meshseg.results` and the notebooks read it by these names."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from meshseg.tracking.identity import flatten
+from meshseg.tracking.provenance import git_sha, machine, slurm_job, versions
+
+
+@dataclass(frozen=True)
+class RunKey:
+    """What tells one fold's run from another's: the tags the report selects runs by (FoldRecord.TAGS, but
+    the git commit) and, from them, the run's name."""
+
+    dataset: str
+    category: str
+    model: str
+    branches: int
+    features: str
+    split: str
+    fold: int
+    refine: str
+    budget: str
+    config_hash: str
+    data_hash: str
+
+    @classmethod
+    def from_tags(cls, tags: Mapping) -> RunKey:
+        """The key of a stored run or record, from its tags (strings)."""
+        values = {f.name: tags[f.name] for f in dataclasses.fields(cls)}
+        return cls(**{**values, "branches": int(values["branches"]), "fold": int(values["fold"])})
+
+    @property
+    def name(self) -> str:
+        """The run's name, what differs between a sweep's runs first (the UI's table cuts names short):
+        `Glasses f2 · cnn1d 3B f800 · 5fold · cpu`."""
+        k = self
+        return f"{k.category} f{k.fold} · {k.model} {k.branches}B {k.features} · {k.split} · {k.budget}"
+
+
+class FoldRecord:
+    """The record schema: tags, params, metrics, artifacts and their names."""
+
+    #: tags every fold run carries (the report selects runs by these)
+    TAGS = (
+        "dataset",
+        "category",
+        "model",
+        "branches",
+        "features",
+        "split",
+        "fold",
+        "refine",
+        "budget",
+        "config_hash",
+        "git_sha",
+        "data_hash",
+    )
+    #: the two accuracies every fold logs (area-weighted mean over the test meshes), after and before refinement.
+    #: Metrics are named by role: train/* (per epoch, from Lightning), test/*, time/<phase>_s, speed/*;
+    #: counts (samples, faces, epochs) are params n_*.
+    ACC, ACC_RAW = "test/acc", "test/acc_raw"
+    #: artifact: the resolved config (YAML)
+    CONFIG = "config.yaml"
+    #: artifact: one row per test mesh, these columns (accuracies in [0, 1], area-weighted)
+    PER_MESH = "per_mesh.csv"
+    PER_MESH_COLUMNS = ("mesh", "faces", "area", "acc_raw", "acc")
+    #: the per-mesh columns a report may average
+    MESH_METRICS = ("acc", "acc_raw")
+    #: artifact: per-face arrays, keys `<prefix><mesh id>` with these dtypes
+    PREDICTIONS = "predictions.npz"
+    PREDICTION_ARRAYS = {"labels_": "int16", "labels_raw_": "int16", "probs_": "float16"}
+
+    @staticmethod
+    def tags(key: RunKey, fold, *, seed: int, accelerator: str, overrides=None) -> dict:
+        """The run's tags: TAGS (what the report selects by), the seed and accelerator, and provenance: the
+        fold's mesh ids (`fold`: a `meshseg.data.splits.Fold`) and the Hydra overrides the run was launched
+        with (so that `meshseg.results` can check a shipped record against the code), the machine, the
+        package versions, and the SLURM job when one runs it (so a stuck run can be found and `scancel`led)."""
+        k = key
+        job = slurm_job()
+        return {
+            "dataset": k.dataset,
+            "category": k.category,
+            "model": k.model,
+            "branches": k.branches,
+            "features": k.features,
+            "split": k.split,
+            "fold": k.fold,
+            "refine": k.refine,
+            "budget": k.budget,
+            "config_hash": k.config_hash,
+            "git_sha": git_sha(),
+            "data_hash": k.data_hash,
+            "seed": seed,
+            "accelerator": accelerator,
+            "fold_ids": json.dumps({"train": list(fold.train), "test": list(fold.test)}),
+            **({"overrides": json.dumps(list(overrides))} if overrides is not None else {}),
+            "machine": machine(accelerator),
+            "versions": versions(),
+            **({"slurm_job": job} if job else {}),
+        }
+
+    @staticmethod
+    def params(config: dict) -> dict[str, str]:
+        """The run's params as the UI lists them: the resolved config flattened, a list as one value, the
+        tracking settings left out (they say where a run is kept, not what it is)."""
+        return {k: v for k, v in flatten(config, lists=False).items() if k.split(".")[0] != "tracking"}
+
+    @staticmethod
+    def predictions(meshes, probabilities, raw, labels) -> dict[str, np.ndarray]:
+        """The per-face arrays of every test mesh, keyed `<prefix><mesh id>` (PREDICTION_ARRAYS)."""
+        out = {}
+        for m, p, r, lab in zip(meshes, probabilities, raw, labels):
+            out.update({f"labels_{m.id}": lab, f"labels_raw_{m.id}": r, f"probs_{m.id}": p})
+        return out
+
+    @staticmethod
+    def prediction_arrays(predictions: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """The per-face arrays, each cast to the dtype PREDICTION_ARRAYS gives its key's prefix."""
+        out = {}
+        for key, a in predictions.items():
+            prefix = max((p for p in FoldRecord.PREDICTION_ARRAYS if key.startswith(p)), key=len, default=None)
+            if prefix is None:
+                raise KeyError(
+                    f"prediction array {key!r} is not in the fold record: {list(FoldRecord.PREDICTION_ARRAYS)}"
+                )
+            out[key] = np.asarray(a).astype(FoldRecord.PREDICTION_ARRAYS[prefix], copy=False)
+        return out
