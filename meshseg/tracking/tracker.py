@@ -127,15 +127,18 @@ class Tracker:
         )
 
     @contextmanager
-    def run(self, name: str, tags: dict, params: dict, run_id: str | None = None) -> Iterator[str]:
+    def run(self, name: str, tags: dict, params: dict, run_id: str | None = None, **extras) -> Iterator[str]:
         """Yield a run's id (`run_id`, claimed before, or a new run) and end it FINISHED, FAILED (error
-        text tagged) or KILLED. A claimed run's heartbeat is kept fresh meanwhile."""
+        text tagged) or KILLED. A claimed run's heartbeat is kept fresh meanwhile. `extras`: `files` (a
+        callable giving paths stored with the run however it ends, e.g. the job's log) and `system_metrics`
+        (MLflow's CPU and memory samples while it runs)."""
         run_id = run_id or self._create(name, tags).info.run_id
         beat = None
         try:
             beat = Heartbeat(self.client, run_id) if self._leased(run_id) else None
             self.log_params(run_id, params)
-            yield run_id
+            with self._system_metrics(run_id, extras.get("system_metrics")), self._files_at_end(run_id, extras):
+                yield run_id
         except KeyboardInterrupt:
             self._end(beat, run_id, "KILLED")
             raise
@@ -146,6 +149,33 @@ class Tracker:
             raise
         else:
             self._end(beat, run_id, "FINISHED")
+
+    @contextmanager
+    def _files_at_end(self, run_id: str, extras: dict) -> Iterator[None]:
+        try:
+            yield
+        finally:  # also (especially) for a run that failed
+            try:
+                if extras.get("files"):
+                    self.log_files(run_id, extras["files"]())
+            except Exception as e:  # never hides what ended the run
+                log.warning("run %s: its files were not stored: %s", run_id, str(e)[:300])
+
+    @contextmanager
+    def _system_metrics(self, run_id: str, on: bool | None) -> Iterator[None]:
+        if not on:
+            yield
+            return
+        import mlflow
+        from mlflow.system_metrics.system_metrics_monitor import SystemMetricsMonitor
+
+        mlflow.set_tracking_uri(self.uri)  # the monitor logs through the default client
+        monitor = SystemMetricsMonitor(run_id, sampling_interval=10, samples_before_logging=1)
+        monitor.start()
+        try:
+            yield
+        finally:
+            monitor.finish()
 
     def _failed(self, beat, run_id: str, e: BaseException) -> None:
         """End a run FAILED with its error text tagged and its traceback logged, if the store lets us."""
