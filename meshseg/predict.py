@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from meshseg.cli import command, usage
 from meshseg.data.mesh import Mesh
 from meshseg.errors import ConfigError, MeshsegError, TrackingError
 
@@ -164,31 +165,26 @@ def predict(cfg) -> dict:
     return {"run": run.info.run_name, "faces": mesh.n_faces, "labels": dict(zip(model.label_names, counts.tolist()))}
 
 
+@command
 def main(argv=None) -> None:
     """`python -m meshseg.predict run_id=… mesh=… out=… [render=…] [tracking.*=…] [paths.*=…]`."""
     from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
 
     from meshseg import CONF_DIR
 
     argv = sys.argv[1:] if argv is None else list(argv)
-    if not argv or argv[0] in ("-h", "--help"):
-        print(__doc__.strip().split("\n\n")[1])
-        sys.exit(0 if argv else 2)
+    usage(__doc__.strip().split("\n\n")[1], argv)
     own_keys = ("run_id", "mesh", "out", "render")
     own = {k: v for k, _, v in (a.partition("=") for a in argv) if k in own_keys}
     overrides = [a for a in argv if a.partition("=")[0] not in own_keys]
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    try:
-        if bad := [a for a in overrides if not a.startswith(("tracking.", "paths."))]:
-            raise ConfigError(f"meshseg.predict takes {', '.join(own_keys)}, tracking.* and paths.*, not {bad[0]!r}")
-        with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-            cfg = compose("run", overrides=overrides)
-        from omegaconf import OmegaConf
-
-        OmegaConf.set_struct(cfg, False)
-        summary = predict(OmegaConf.merge(cfg, own))
-    except MeshsegError as e:
-        sys.exit(f"error: {e}")
+    if bad := [a for a in overrides if not a.startswith(("tracking.", "paths."))]:
+        raise ConfigError(f"meshseg.predict takes {', '.join(own_keys)}, tracking.* and paths.*, not {bad[0]!r}")
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = compose("run", overrides=overrides)
+    OmegaConf.set_struct(cfg, False)
+    summary = predict(OmegaConf.merge(cfg, own))
     log.info(
         "%s: %d faces labelled with %s -> %s %s",
         own["mesh"],

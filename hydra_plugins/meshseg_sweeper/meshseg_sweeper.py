@@ -52,17 +52,15 @@ def summary(returns: list[Sequence[JobReturn]], failed: list[JobReturn], seconds
 
 class MeshsegSweeper(BasicSweeper):
     def split_arguments(self, overrides: list[Override], max_batch_size: int | None) -> list[list[list[str]]]:
-        from meshseg.errors import MeshsegError
+        from meshseg.cli import user_errors
         from meshseg.sweep import sweep_cells
 
         jobs = []
         for combo in BasicSweeper.split_arguments(overrides, None)[0]:
             keys = {o.split("=", 1)[0].lstrip("+~") for o in combo}
-            try:
+            with user_errors():
                 cfg = self.hydra_context.config_loader.load_sweep_config(self.config, list(combo))
                 cells = sweep_cells(cfg, "category" in keys, "fold" in keys)
-            except MeshsegError as e:
-                sys.exit(f"error: {e}")
             for category, fold in cells:
                 jobs.append(
                     [

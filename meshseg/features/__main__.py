@@ -6,7 +6,6 @@ python -m meshseg.features mesh=FILE.off out=FILE.npy features=f800
 
 from __future__ import annotations
 
-import sys
 import time
 from pathlib import Path
 
@@ -15,9 +14,10 @@ import numpy as np
 from omegaconf import DictConfig
 
 from meshseg import CONF_DIR
+from meshseg.cli import user_errors
 from meshseg.data.datasets import build_dataset
 from meshseg.data.io import atomic_write, check_output_folder, read_mesh
-from meshseg.errors import ConfigError, MeshsegError
+from meshseg.errors import ConfigError
 from meshseg.features.cache import FeatureCache
 from meshseg.features.sets import FeatureSet, check_finite, compute_dataset
 
@@ -36,7 +36,7 @@ def save_npy(path: str, X: np.ndarray) -> None:
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="features")
 def main(cfg: DictConfig) -> None:
-    try:
+    with user_errors():  # a user error is one line; anything else is a bug, with its traceback
         fs = FeatureSet.from_config(cfg.features)
         cache_root = cfg.paths.cache_dir if cfg.cache else None
         if cfg.mesh is not None:
@@ -55,8 +55,6 @@ def main(cfg: DictConfig) -> None:
         dataset = build_dataset(cfg.dataset)
         categories = [dataset.check_category(cfg.category)] if cfg.category else dataset.categories
         compute_dataset(dataset, fs, cache_root, [(c, m) for c in categories for m in dataset.mesh_ids(c)], cfg.workers)
-    except MeshsegError as e:  # anything else is a bug: its traceback shows where
-        sys.exit(f"error: {e}")
 
 
 if __name__ == "__main__":
