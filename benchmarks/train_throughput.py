@@ -206,24 +206,29 @@ def main(argv=None) -> None:
         "timed steps each)"
     )
     if "fp32" in args.precisions:
-        print("fp32:")
-        head = f"{'branches':>8} {'fwd MFLOP':>9} | {'fast smp/s':>10} {'GFLOP/s':>8} {'% peak':>6}"
-        if len(names) > 1:
-            head += f" | {'ref smp/s':>9} {'GFLOP/s':>8} {'% peak':>6} | {'speed-up':>8}"
-        print(head)
-        print("-" * len(head))
-        for b, fwd, medians, _ in rows:
-            cells = []
-            for name in names:
-                sps = args.batch_size / medians[name, "fp32"]
-                gflops = 3 * fwd * sps / 1e9
-                cells.append(f"{sps:{10 if name == 'fast' else 9}.0f} {gflops:8.1f} {100 * gflops / peak:5.1f}%")
-            line = f"{b:>8} {fwd / 1e6:9.2f} | " + " | ".join(cells)
-            if len(names) > 1:
-                line += f" | {medians['reference', 'fp32'] / medians['fast', 'fp32']:7.2f}x"
-            print(line)
+        print_fp32(args, names, rows, peak)
     if "bf16" in args.precisions:
         print_bf16(args, configs, rows)
+
+
+def print_fp32(args, names, rows, peak: float) -> None:
+    """samples/s, GFLOP/s and % of the matmul peak of each model in fp32, and the fast model's speed-up."""
+    print("fp32:")
+    head = f"{'branches':>8} {'fwd MFLOP':>9} | {'fast smp/s':>10} {'GFLOP/s':>8} {'% peak':>6}"
+    if len(names) > 1:
+        head += f" | {'ref smp/s':>9} {'GFLOP/s':>8} {'% peak':>6} | {'speed-up':>8}"
+    print(head)
+    print("-" * len(head))
+    for b, fwd, medians, _ in rows:
+        cells = []
+        for name in names:
+            sps = args.batch_size / medians[name, "fp32"]
+            gflops = 3 * fwd * sps / 1e9
+            cells.append(f"{sps:{10 if name == 'fast' else 9}.0f} {gflops:8.1f} {100 * gflops / peak:5.1f}%")
+        line = f"{b:>8} {fwd / 1e6:9.2f} | " + " | ".join(cells)
+        if len(names) > 1:
+            line += f" | {medians['reference', 'fp32'] / medians['fast', 'fp32']:7.2f}x"
+        print(line)
 
 
 def print_bf16(args, configs, rows) -> None:

@@ -213,8 +213,10 @@ def test_covariance_eigenvalues_formula():
 # --- operators ---------------------------------------------------------------------------------
 
 
-def _reference_traversal(nbr, length, n, src, R, min_faces, check_normals):
-    """The 2010 code's traverseFaces, literally: a Dijkstra that takes a face when popped."""
+def _reference_traversal(mesh, src, R, min_faces, check_normals):
+    """The 2010 code's traverseFaces, literally: a Dijkstra that takes a face when popped. `mesh`: (face
+    neighbours, dual edge lengths, face normals)."""
+    nbr, length, n = mesh
     dist, seen, taken = {src: 0.0}, set(), []
     heap = [(0.0, src)]
     while heap:
@@ -251,7 +253,7 @@ def test_geodesic_balls_match_the_original_traversal(min_faces, check_normals):
     assert sorted(got) == list(range(len(F)))
     for f in range(0, len(F), 7):
         for r, R in enumerate(radii):
-            assert got[f][r] == _reference_traversal(nbr, length, n, f, R, min_faces, check_normals), (f, R)
+            assert got[f][r] == _reference_traversal((nbr, length, n), f, R, min_faces, check_normals), (f, R)
 
 
 def test_smoothed_normals_and_face_neighbours():
