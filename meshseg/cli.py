@@ -1,4 +1,4 @@
-"""What every `python -m meshseg.<command>` shares: the error contract and the checks of a run's command line.
+"""What every `python -m meshseg.<command>` shares: the error contract, usage, and the check of a run's command line.
 
 A user's mistake (a `MeshsegError`: bad file, bad setting, store not answering) ends any command with one
 line `error: <message>` on stderr and exit status `ERROR_EXIT`, the status Hydra itself exits with on a bad
@@ -12,11 +12,9 @@ import functools
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from pathlib import Path
 from typing import NoReturn
 
-from meshseg import CONF_DIR
-from meshseg.errors import ConfigError, MeshsegError
+from meshseg.errors import MeshsegError
 
 #: the exit status of every command on a user error (and on a usage error)
 ERROR_EXIT = 1
@@ -57,29 +55,6 @@ def usage(doc: str, argv: list[str]) -> bool:
     sys.exit(0 if argv else ERROR_EXIT)
 
 
-def known_settings() -> tuple[str, ...]:
-    """The top-level keys a run config may have: conf/run.yaml's groups and its own keys."""
-    import yaml
-
-    primary = yaml.safe_load((Path(CONF_DIR) / "run.yaml").read_text())
-    groups = [next(iter(d)) if isinstance(d, dict) else d for d in primary["defaults"]]
-    keys = [*(g for g in groups if g != "_self_" and not g.startswith("override ")), *primary]
-    return tuple(k for k in dict.fromkeys(keys) if k not in ("defaults", "hydra"))
-
-
-def check_settings(keys) -> None:
-    """Refuse a top-level key no config group or setting uses (`+modle=cnn1d` would otherwise train the
-    default model with a junk key in its config hash), suggesting the nearest known one."""
-    import difflib
-
-    known = known_settings()
-    for key in keys:
-        if key not in known:
-            near = difflib.get_close_matches(key, known, n=1)
-            hint = f" (did you mean {near[0]}?)" if near else ""
-            raise ConfigError(f"unknown setting {key!r}{hint}: meshseg.run takes {', '.join(known)}")
-
-
 #: Hydra's flags whose next argument is their value, not an override
 _VALUE_FLAGS = {
     *("-sc", "--shell-completion", "-cp", "--config-path", "-cn", "--config-name", "-cd", "--config-dir"),
@@ -98,4 +73,6 @@ def check_argv(argv: list[str]) -> None:
         key = arg.split("=", 1)[0].lstrip("+~").split(".")[0].split("/")[0].split("@")[0]
         if key != "hydra":
             keys.append(key)
+    from meshseg.job import check_settings  # the run config's own check, here on the command line's keys
+
     check_settings(keys)

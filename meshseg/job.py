@@ -1,24 +1,40 @@
 """One fold's job: everything its run needs, resolved from the run config and checked once, before any
-feature is computed or any run created. Below this module, layers get plain values and built objects,
-not the run config."""
+feature is computed or any run created. Below this module no layer sees the run config: the builders get
+their own (resolved) node (dataset, split, features, model, refinement), everything else plain values and
+built objects."""
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
+from meshseg import CONF_DIR
 from meshseg.data.datasets import MeshDataset, build_dataset
 from meshseg.data.splits import Fold, build_split
 from meshseg.errors import ConfigError
 from meshseg.features.sets import FeatureSet
 from meshseg.refine import build_refinement
 
+log = logging.getLogger("meshseg.run")
+
 BRANCHES = (1, 2, 3, 4)
 RING_ADJACENCY = ("edge", "vertex")
 RESAMPLE = ("fold", "epoch")  # budget.resample
 CHECKPOINTS = (True, False, "auto")  # tracking.checkpoints
+
+
+@dataclass
+class FoldOutcome:
+    """What one fold's job did (a sweep's closing summary counts them): its test accuracy (area-weighted,
+    refined; NaN for a fold another live run holds), and whether it was skipped."""
+
+    category: str
+    fold: int
+    acc: float
+    skipped: bool
 
 
 @dataclass(frozen=True)
@@ -41,6 +57,26 @@ class FoldJob:
     tracking: dict  # the tracking settings (store, leases, what to log)
     config: dict
     tags: dict
+
+    def skipped(self, holder) -> FoldOutcome:
+        """Log why the fold is not run (its config is FINISHED, or a live process runs it): `holder` is that
+        run. Its outcome: the holder's accuracy, or NaN."""
+        from meshseg.tracking import FoldRecord
+
+        key, info = self.key, holder.info
+        acc = holder.data.metrics.get(FoldRecord.ACC, float("nan"))
+        if info.status == "FINISHED":
+            log.info(
+                "skip: %s — config %s already has FINISHED run %s (test/acc %.4f)",
+                key.name,
+                key.config_hash,
+                info.run_id,
+                acc,
+            )
+        else:
+            owner = holder.data.tags.get("lease.owner", "?")
+            log.info("skip: %s — config %s is being run by run %s (%s)", key.name, key.config_hash, info.run_id, owner)
+        return FoldOutcome(key.category, key.fold, acc, True)
 
     @classmethod
     def from_config(cls, cfg: DictConfig, overrides: list[str] | None = None) -> FoldJob:
@@ -87,10 +123,31 @@ class FoldJob:
         )
 
 
+def known_settings() -> tuple[str, ...]:
+    """The top-level keys a run config may have: conf/run.yaml's groups and its own keys."""
+    import yaml
+
+    primary = yaml.safe_load((Path(CONF_DIR) / "run.yaml").read_text())
+    groups = [next(iter(d)) if isinstance(d, dict) else d for d in primary["defaults"]]
+    keys = [*(g for g in groups if g != "_self_" and not g.startswith("override ")), *primary]
+    return tuple(k for k in dict.fromkeys(keys) if k not in ("defaults", "hydra"))
+
+
+def check_settings(keys) -> None:
+    """Refuse a top-level key no config group or setting uses (`+modle=cnn1d` would otherwise train the
+    default model with a junk key in its config hash), suggesting the nearest known one."""
+    import difflib
+
+    known = known_settings()
+    for key in keys:
+        if key not in known:
+            near = difflib.get_close_matches(key, known, n=1)
+            hint = f" (did you mean {near[0]}?)" if near else ""
+            raise ConfigError(f"unknown setting {key!r}{hint}: meshseg.run takes {', '.join(known)}")
+
+
 def check_config(cfg: DictConfig) -> None:
     """Every run setting no config group checks for itself; each message lists what is allowed."""
-    from meshseg.cli import check_settings
-
     check_settings([k for k in cfg.keys() if k != "hydra"])  # a sweep job's config carries hydra's own node
     if cfg.branches not in BRANCHES:
         raise ConfigError(f"branches={cfg.branches} is not allowed: choose one of {list(BRANCHES)}")

@@ -17,7 +17,6 @@ import logging
 import shutil
 import sys
 import time
-from dataclasses import dataclass
 
 import hydra
 import numpy as np
@@ -25,7 +24,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from meshseg import CONF_DIR
 from meshseg.cli import check_argv, command, user_errors
-from meshseg.job import FoldJob
+from meshseg.job import FoldJob, FoldOutcome
 from meshseg.signals import terminate_interrupts
 from meshseg.sweep import in_sweep, job_done, job_files, job_overrides, job_progress, sweep_tag
 from meshseg.timing import Timings
@@ -34,17 +33,6 @@ log = logging.getLogger("meshseg.run")
 
 #: the run tags a fold's saved model carries along (its model.yaml says where it came from)
 ABOUT_MODEL = ("dataset", "category", "fold", "model", "branches", "features", "budget", "config_hash", "git_sha")
-
-
-@dataclass
-class FoldOutcome:
-    """What one fold's job did (a sweep's closing summary counts them): its test accuracy (area-weighted,
-    refined; NaN for a fold another live run holds), and whether it was skipped."""
-
-    category: str
-    fold: int
-    acc: float
-    skipped: bool
 
 
 def run(cfg: DictConfig) -> FoldOutcome:
@@ -66,7 +54,7 @@ def run(cfg: DictConfig) -> FoldOutcome:
     tracker = Tracker(t["uri"], t["experiment"], t["artifact_dir"])
     holder = tracker.finished(key.config_hash) if t["skip_finished"] else None
     if holder is not None:
-        return skipped(job, holder)
+        return job.skipped(holder)
     command_line = " ".join(["python -m meshseg.run", *(overrides or [])])
     tags = {**job.tags, **system_tags("meshseg.run", command_line, job.tags["git_sha"]), **sweep_tag()}
     with terminate_interrupts():  # from the claim on: SIGTERM ends the run KILLED wherever it lands
@@ -74,7 +62,7 @@ def run(cfg: DictConfig) -> FoldOutcome:
         if t["skip_finished"]:  # claim the config: a concurrent sweep may have taken it since the check
             run_id, holder = tracker.claim(key.name, tags, Lease(t["heartbeat_s"], t["lease_timeout_s"]))
             if run_id is None:
-                return skipped(job, holder)
+                return job.skipped(holder)
         params = FoldRecord.params(job.config)
         with tracker.run(key.name, tags, params, run_id, files=job_files, system_metrics=t["system_metrics"]) as run_id:
             fold = job.fold
@@ -89,7 +77,7 @@ def run(cfg: DictConfig) -> FoldOutcome:
             tracker.log_dataset(run_id, f"{key.dataset}/{key.category}", key.data_hash, job.dataset.source)
             # features, fit, predict: the fit logs to the run and checkpoints under the fold's config hash
             source = FeatureSource(
-                job.dataset, key.category, job.features, job.cache_dir, key.branches, job.ring_adjacency
+                job.dataset, key.category, job.features, job.cache_dir, key.branches, job.ring_adjacency, fold
             )
             fitter = job.fitter
             fitter.context = dataclasses.replace(
@@ -97,7 +85,7 @@ def run(cfg: DictConfig) -> FoldOutcome:
                 logger=tracker.lightning_logger(run_id),
                 checkpoint_dir=job.checkpoints and str(job.checkpoints),
             )
-            preds = fit_predict(source, fold, fitter, job.faces_per_mesh, job.workers)
+            preds = fit_predict(source, fitter, job.faces_per_mesh, job.workers)
             timings = Timings(preds.timings)
             # refine: the refinement's own per-mesh inputs (e.g. AGD) come from the feature cache
             log.info("refining %d test meshes (%s)", len(preds.meshes), key.refine)
@@ -146,28 +134,6 @@ def run(cfg: DictConfig) -> FoldOutcome:
     )
     job_done(time.perf_counter() - start)
     return FoldOutcome(key.category, key.fold, acc, False)
-
-
-def skipped(job: FoldJob, holder) -> FoldOutcome:
-    """Log why a fold is not run (its config is FINISHED, or a live process runs it); its accuracy or NaN."""
-    from meshseg.tracking import FoldRecord
-
-    key = job.key
-    acc = holder.data.metrics.get(FoldRecord.ACC, float("nan"))
-    if holder.info.status == "FINISHED":
-        log.info(
-            "skip: %s — config %s already has FINISHED run %s (test/acc %.4f)",
-            key.name,
-            key.config_hash,
-            holder.info.run_id,
-            acc,
-        )
-    else:
-        owner = holder.data.tags.get("lease.owner", "?")
-        log.info(
-            "skip: %s — config %s is being run by run %s (%s)", key.name, key.config_hash, holder.info.run_id, owner
-        )
-    return FoldOutcome(key.category, key.fold, acc, True)
 
 
 def setup_process(trainer: DictConfig) -> None:

@@ -4,6 +4,8 @@ Runs use five small synthetic figures (4 classes), a cheap feature set and budge
 the feature cache is shared by the session.
 """
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -57,8 +59,8 @@ def source(cache_dir):
 def fit(source, model, test=("0",), seed=0, *overrides):
     cfg = compose_run(*SMALL, f"model={model}", *overrides)
     ctx = TrainContext.from_config(cfg.budget, cfg.trainer, seed)
-    fitter = build_fitter(cfg.model, ctx)
-    return fit_predict(source, Fold(0, TRAIN, tuple(test)), fitter, cfg.budget.faces_per_mesh, workers=1)
+    fold_source = dataclasses.replace(source, fold=Fold(0, TRAIN, tuple(test)))
+    return fit_predict(fold_source, build_fitter(cfg.model, ctx), cfg.budget.faces_per_mesh, workers=1)
 
 
 # --- configuration --------------------------------------------------------------------------------

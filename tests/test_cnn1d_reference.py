@@ -41,15 +41,15 @@ def test_a_fold_trains_alike_with_either_network(cache_dir):
     """Same seed, same fold: both start from the same weights, see the same batches and dropout masks, so
     they end with the same predictions up to float rounding, well above chance (0.25 for 4 parts)."""
     cfg = compose_run(*SMALL)
-    source = FeatureSource(
-        build_dataset(cfg.dataset), "figure", FeatureSet.from_config(cfg.features), str(cache_dir), 3
-    )
     fold = Fold(0, ("1", "2", "3"), ("0", "4"))
+    source = FeatureSource(
+        build_dataset(cfg.dataset), "figure", FeatureSet.from_config(cfg.features), str(cache_dir), 3, fold=fold
+    )
     folds = {}
     for model in ("cnn1d", "cnn1d_reference"):
         c = compose_run(*SMALL, f"model={model}")
         ctx = TrainContext.from_config(c.budget, c.trainer, 0)
-        folds[model] = fit_predict(source, fold, build_fitter(c.model, ctx), c.budget.faces_per_mesh, workers=1)
+        folds[model] = fit_predict(source, build_fitter(c.model, ctx), c.budget.faces_per_mesh, workers=1)
     fast, ref = folds["cnn1d"], folds["cnn1d_reference"]
     assert isinstance(fast.parts["net"], MultiBranchCNN1D) and isinstance(ref.parts["net"], PaperCNN1D)
     assert fast.counts == ref.counts

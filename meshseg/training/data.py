@@ -16,6 +16,7 @@ from torch.utils.data import BatchSampler, DataLoader, Dataset, RandomSampler, S
 
 from meshseg.data.datasets import MeshDataset
 from meshseg.data.mesh import Mesh
+from meshseg.data.splits import Fold
 from meshseg.features.cache import FeatureCache
 from meshseg.features.rings import ring_means
 from meshseg.features.sets import FeatureSet, check_finite, compute_dataset, parse_entry
@@ -24,7 +25,8 @@ from meshseg.timing import Timings
 
 @dataclass
 class FeatureSource:
-    """Where a fold's per-face inputs come from: dataset, feature set, cache, scales."""
+    """A fold's meshes (`fold`: which train, which test) and where their per-face inputs come from: dataset,
+    feature set, cache, scales."""
 
     dataset: MeshDataset
     category: str
@@ -32,6 +34,7 @@ class FeatureSource:
     cache_root: str | None
     branches: int = 3
     ring_adjacency: str = "edge"
+    fold: Fold | None = None
     _meshes: dict = field(default_factory=dict, repr=False)  # loaded once per fold (synthetic ones are generated)
     timings: Timings = field(default_factory=Timings, repr=False)  # mesh, load (cache reads), rings (X^k)
 

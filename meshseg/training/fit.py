@@ -11,7 +11,6 @@ import numpy as np
 import pytorch_lightning as pl
 
 from meshseg.data.mesh import Mesh
-from meshseg.data.splits import Fold
 from meshseg.training.data import FeatureSource, build_train, iter_test_inputs
 from meshseg.training.fitters import Fitter
 
@@ -29,16 +28,14 @@ class FoldPredictions:
     standardiser: object | None = None
 
 
-def fit_predict(
-    source: FeatureSource, fold: Fold, fitter: Fitter, faces_per_mesh: int | None, workers: int = 2
-) -> FoldPredictions:
+def fit_predict(source: FeatureSource, fitter: Fitter, faces_per_mesh: int | None, workers: int = 2) -> FoldPredictions:
     """Features (from the cache or computed), the fitter (built by `build_fitter`, with the run's context)
-    fitted on the fold's training meshes (`faces_per_mesh` sampled from each, all when None), then class
-    probabilities for every face of every test mesh.
+    fitted on the training meshes of the source's fold (`faces_per_mesh` sampled from each, all when None),
+    then class probabilities for every face of every test mesh.
 
     Timings (seconds): `features` (computing what the cache lacks), `mesh` (reading meshes), `load`
     (reading cached features), `rings` (X^1..X^B), `standardise`, `train`, `predict` (the model only)."""
-    ctx = fitter.context
+    ctx, fold = fitter.context, source.fold
     timings = source.timings
     with timings("features"):
         source.prepare([*fold.train, *fold.test], workers)
