@@ -742,3 +742,28 @@ class Tracker:
                 pass  # the run ends after evaluation, in Tracker.run
 
         return _FoldLogger(tracking_uri=self.uri, run_id=run_id)
+
+
+def search_runs(uri: str, experiment: str, filter_string: str = "") -> list:
+    """Every run of `experiment` in the store at `uri` that matches `filter_string`, all pages, each page
+    call retried like every store call; [] when the experiment does not exist (it is never created)."""
+    import os
+
+    from mlflow import MlflowClient
+
+    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # one bar per run otherwise
+    client = MlflowClient(tracking_uri=store_uri(uri))
+    exp = _retry(lambda: client.get_experiment_by_name(experiment), "reading the experiment")
+    runs, token = [], None
+    while exp is not None:
+        page = _retry(
+            lambda token=token: client.search_runs(
+                [exp.experiment_id], filter_string, max_results=1000, page_token=token
+            ),
+            "searching runs",
+        )
+        runs.extend(page)
+        token = page.token
+        if not token:
+            break
+    return runs
