@@ -28,10 +28,10 @@ from omegaconf import DictConfig
 from meshseg import CONF_DIR
 from meshseg.errors import MeshsegError
 from meshseg.report.app import ERROR_EXIT, run_app
+from meshseg.report.cells import Table
 from meshseg.report.config import check_config, compose_config
 from meshseg.report.manifest import load_manifest
 from meshseg.report.publish import build, publish, summary
-from meshseg.report.table import Table
 
 log = logging.getLogger("meshseg.reproduce")
 

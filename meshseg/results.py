@@ -30,6 +30,7 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
+from meshseg.config import hydra_scope, run_config
 from meshseg.data.io import check_output_folder
 from meshseg.errors import ConfigError, MeshsegError
 from meshseg.tracking import FoldRecord, RunKey, Tracker, check_store_exists, fold_identity
@@ -106,6 +107,15 @@ def _number(v) -> bool:
 
 def check_record(record: dict) -> str | None:
     """Why a record cannot be imported as it is, or None: every part checked before any run is created."""
+    for problem in (_identity_problem, _config_problem, _numbers_problem, _per_mesh_problem, _times_problem):
+        why = problem(record)
+        if why is not None:
+            return why
+    return None
+
+
+def _identity_problem(record: dict) -> str | None:
+    """The config hash and the tags that name the run and its place."""
     tags, chash = record.get("tags"), record.get("config_hash")
     if not isinstance(chash, str) or not re.fullmatch(r"[0-9a-f]{16}", chash):
         return f"config_hash {chash!r} is not 16 hex digits"
@@ -116,10 +126,13 @@ def check_record(record: dict) -> str | None:
         return f"tags lack {lacking}"
     if tags["config_hash"] != chash:
         return f"its tags name config hash {tags['config_hash']}, the record {chash}"
-    for key in ("dataset", "category"):
-        if not plain_name(tags[key]):
-            return f"tags.{key} {tags[key]!r} is not a plain name"
-    config = record.get("config")
+    bad = next((key for key in ("dataset", "category") if not plain_name(tags[key])), None)
+    return None if bad is None else f"tags.{bad} {tags[bad]!r} is not a plain name"
+
+
+def _config_problem(record: dict) -> str | None:
+    """The resolved config, of the category and fold its tags name."""
+    tags, config = record["tags"], record.get("config")
     if not isinstance(config, dict):
         return "config is not a mapping"
     if config.get("category") != tags["category"] or str(config.get("fold")) != tags["fold"]:
@@ -127,11 +140,19 @@ def check_record(record: dict) -> str | None:
             f"config (category {config.get('category')!r}, fold {config.get('fold')!r}) differs from its tags "
             f"(category {tags['category']!r}, fold {tags['fold']!r})"
         )
+    return None
+
+
+def _numbers_problem(record: dict) -> str | None:
     metrics, counts = record.get("metrics"), record.get("counts", {})
     if not isinstance(metrics, dict) or not all(isinstance(k, str) and _number(v) for k, v in metrics.items()):
         return "metrics must map names to finite numbers"
     if not isinstance(counts, dict) or not all(isinstance(v, int) and not isinstance(v, bool) for v in counts.values()):
         return "counts must map names to integers"
+    return None
+
+
+def _per_mesh_problem(record: dict) -> str | None:
     rows = record.get("per_mesh")
     if not isinstance(rows, list) or not rows:
         return "per_mesh must be a non-empty list of rows"
@@ -141,6 +162,10 @@ def check_record(record: dict) -> str | None:
         bad = [k for k in FoldRecord.PER_MESH_COLUMNS[1:] if not _number(row.get(k))]
         if bad:
             return f"per_mesh[{i}] ({row['mesh']}): {bad} missing or not numbers"
+    return None
+
+
+def _times_problem(record: dict) -> str | None:
     for key in ("start_time", "end_time"):
         if not (isinstance(record.get(key), int) or (key == "end_time" and record.get(key) is None)):
             return f"{key} {record.get(key)!r} is not a time in ms"
@@ -196,10 +221,6 @@ def load_records(root: Path) -> list[tuple[Path, dict]]:
 def current_hash(record: dict) -> str | None:
     """The config hash the code gives the record's run today: its Hydra overrides composed again with
     its category, fold and mesh ids and its data hash. None when the record does not carry them."""
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-
-    from meshseg import CONF_DIR
     from meshseg.data.splits import Fold
 
     tags = record["tags"]
@@ -208,11 +229,7 @@ def current_hash(record: dict) -> str | None:
     overrides = json.loads(tags["overrides"])
     ids = json.loads(tags["fold_ids"])
     try:
-        if GlobalHydra.instance().is_initialized():
-            cfg = compose("run", overrides=overrides)
-        else:
-            with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-                cfg = compose("run", overrides=overrides)
+        cfg = run_config(overrides)
     except Exception as e:  # an override the code no longer knows: the config changed since
         log.debug("cannot compose %s: %s", overrides, e)
         return "(overrides no longer compose)"
@@ -285,10 +302,6 @@ def main(argv=None) -> None:
     """`python -m meshseg.results export|import [key=value ...]` (tracking.* and paths.* as for meshseg.run)."""
     import sys
 
-    from hydra import compose, initialize_config_dir
-
-    from meshseg import CONF_DIR
-
     argv = sys.argv[1:] if argv is None else list(argv)
     if not argv or argv[0] not in ("export", "import"):
         if argv and argv[0] not in ("-h", "--help"):
@@ -299,8 +312,8 @@ def main(argv=None) -> None:
     own = {a.split("=", 1)[0]: a.split("=", 1)[1] for a in args if a.split("=", 1)[0] in ("out", "dir")}
     overrides = [a for a in args if a.split("=", 1)[0] not in ("out", "dir")]
     try:
-        with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-            cfg = compose("run", overrides=overrides)
+        with hydra_scope():  # once for every record's config composed again (current_hash)
+            cfg = run_config(overrides)
             root = Path(own.get("out", own.get("dir", "results")))
             # the paths first: a mistyped one fails before any store is opened (or created empty)
             if action == "export":

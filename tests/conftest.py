@@ -2,6 +2,7 @@ import os
 from pathlib import Path
 
 import pytest
+import yaml
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
@@ -104,3 +105,37 @@ def _build_smoke_store(root: Path, cache_dir: Path) -> None:
     for p in sweeps:
         _, err = p.communicate(timeout=900)
         assert p.returncode == 0, err[-3000:]
+
+
+# --- a hand-made two-mesh L-PSB folder and manifests over it (predictions columns, study manifests) -----------
+
+# mesh 1: two triangles of area 1/2 and 2 (a 1 x 1 and a 2 x 2 right triangle); mesh 2: three unit triangles
+MESH1 = "OFF\n6 2 0\n0 0 0\n1 0 0\n0 1 0\n5 0 0\n7 0 0\n5 2 0\n3 0 1 2\n3 3 4 5\n"
+MESH2 = "OFF\n9 3 0\n" + "".join(f"{x} 0 0\n{x + 1} 0 0\n{x} 1 0\n" for x in (0, 3, 6)) + "3 0 1 2\n3 3 4 5\n3 6 7 8\n"
+
+
+def tiny_psb(root: Path) -> Path:
+    """An L-PSB-shaped folder root/db: category Tiny, meshes 1 (faces head, body) and 2 (head, head, body)."""
+    d = root / "db/Tiny"
+    d.mkdir(parents=True)
+    (d / "1.off").write_text(MESH1)
+    (d / "1_labels.txt").write_text("head\n1\nbody\n2\n")
+    (d / "2.off").write_text(MESH2)
+    (d / "2_labels.txt").write_text("head\n1 2\nbody\n3\n")
+    return root / "db"
+
+
+def tiny_manifest(root: Path, name: str, columns: list[dict], sets: list[dict], average=None, **keys) -> Path:
+    """Manifest `name` (root/<name>.yaml) on tiny_psb(root), leave-one-out: one group g of `sets` with an
+    average row published as `average` in every column."""
+    doc = {
+        "name": name,
+        "title": "t",
+        "overrides": ["dataset=psb", f"dataset.root={root / 'db'}", "split=loo"],
+        "columns": columns,
+        "groups": [{"name": "g", "average": "Average", "published_average": [average] * len(columns), "sets": sets}],
+        **keys,
+    }
+    path = root / f"{name}.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    return path

@@ -5,11 +5,14 @@ import re
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 
-from meshseg.report.claims import Claim, build_report, decide, judge, load_claims, summary_table
-from meshseg.report.manifest import Column, Group, Manifest, ManifestError, Set, load_manifest
-from meshseg.report.table import Cell, Row, Table
+from meshseg.errors import ManifestError
+from meshseg.report.cells import Cell, Row, Table
+from meshseg.report.claims import SetDiff, build_report, decide, judge, summary_table
+from meshseg.report.claims_file import Claim, ClaimsFile, TableSpec, load_claims
+from meshseg.report.manifest import Column, Group, Manifest, Set, load_manifest
 
 REPO = Path(__file__).resolve().parents[1]
 A, B, P = Column("a", "A", ("x=1",)), Column("b", "B", ("x=2",)), Column("p", "P", None)
@@ -19,26 +22,22 @@ def table(sets: dict[str, tuple[list[float], list[float]]], missing: dict[str, i
     """A manifest of columns a, b (runs) and p (published only) whose set s has per-mesh accuracies
     sets[s] = (a's, b's) on meshes m0, m1, ...; `missing` folds of column a per set (of 5)."""
     missing = missing or {}
-    rows = []
+    rows, meshes = [], []
     for name, (xa, xb) in sets.items():
         cells = []
         for col, xs, pub in ((A, xa, 95.0), (B, xb, 93.0)):
             gone = tuple(range(missing.get(name, 0))) if col is A else ()
-            scored = tuple((f"m{i}", float(x)) for i, x in enumerate(xs))
-            cell = Cell(col, pub, scored=scored, folds=5, missing=gone, budget="cpu")
-            if not gone:
-                cell.accs, cell.meshes, cell.value = (
-                    np.array(xs, float),
-                    tuple(m for m, _ in scored),
-                    float(np.mean(xs)),
-                )
-                cell.gains = np.array(xs, float) - np.array(xb, float)  # stands in for refined - raw
-            cells.append(cell)
+            value = None if gone else float(np.mean(xs))
+            cells.append(Cell(col, pub, value, n_meshes=0 if gone else len(xs), folds=5, missing=gone, budget="cpu"))
+            # raw accuracies: a's stand in for refined - raw = a - b
+            raws = np.array(xb, float) if col is A else np.array(xs, float)
+            meshes += [(name, col.key, f"m{i}", float(x), r) for i, (x, r) in enumerate(zip(xs, raws))]
         cells.append(Cell(P, 94.0))
-        rows.append(Row(name, "set", "G", cells))
+        rows.append(Row(name, "set", "G", tuple(cells)))
     groups = (Group("G", (), tuple(Set(s, s, (95.0, 93.0, 94.0)) for s in sets), None, (None, None, None)),)
     m = Manifest("t", "t", "", "", (), (A, B, P), groups, None, (None, None, None), Path("t.yaml"))
-    return Table(m, rows, (), "acc", 0.95)
+    frame = pd.DataFrame(meshes, columns=["row", "column", "mesh", "acc", "acc_raw"]).assign(group="G")
+    return Table(m, tuple(rows), (), "acc", 0.95, meshes=frame)
 
 
 def claim(test="mean", **kw) -> Claim:
@@ -105,8 +104,6 @@ def test_equal_against_a_published_only_column_and_refinement():
 
 
 def test_decide_most_sets_needs_its_share():
-    from meshseg.report.claims import SetDiff
-
     sets = [SetDiff(f"s{i}", 1.0, (0.5, 1.5), 5) for i in range(4)] + [SetDiff("s4", -0.2, (-0.5, 0.1), 5)]
     assert decide("most_sets", (0.3, 1.2), sets, 0.5, 0.75) == ("reproduced", ["s4"])  # 4 of 5 >= 75 %
     assert decide("most_sets", (0.3, 1.2), sets, 0.5, 0.9) == ("partly", ["s4"])
@@ -135,8 +132,6 @@ def test_every_shipped_claim_names_columns_and_sets_its_manifest_has():
 
 
 def test_build_report_judges_tables_too():
-    from meshseg.report.claims import ClaimsFile, TableSpec
-
     t = table({"s1": noisy(1.0), "s2": noisy(1.0)})
     cf = ClaimsFile("claims", "C", "rule", (), (claim(),), (TableSpec("t", "Table T"),), 1.0, 2.0, {}, Path("c.yaml"))
     report = build_report(cf, {"t": t})
@@ -164,8 +159,6 @@ def test_the_readme_claims_table_matches_reports_claims_csv():
 
 
 def test_the_budget_study_note_says_whether_the_budget_moves_a_claims_evidence():
-    from meshseg.report.claims import ClaimsFile
-
     t = table({"s1": noisy(1.0), "s2": noisy(1.0)})
     spec = {"table": "study", "compare": {"3B": ["a", "b"]}}
 
@@ -183,7 +176,7 @@ def test_the_budget_study_note_says_whether_the_budget_moves_a_claims_evidence()
 
 
 def summary_table_line(v) -> str:
-    from meshseg.report.claims import ClaimsFile, ClaimsReport
+    from meshseg.report.claims import ClaimsReport
 
     cf = ClaimsFile("claims", "C", "rule", (), (v.claim,), (), 1.0, 2.0, {}, Path("c.yaml"))
     return summary_table(ClaimsReport(cf, [v], [], [])).splitlines()[2]

@@ -10,21 +10,24 @@ import shlex
 import shutil
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 import yaml
 from conftest import PSB_ARCHIVE, REPO, SMOKE, require, smoke_env
 from mlflow import MlflowClient
 from test_manifests import PAPER_TABLES, paper_tex, parse_tabulars
 
-from meshseg.errors import ConfigError
-from meshseg.report import ManifestError, collect, load_manifest, report
+from meshseg.errors import ConfigError, ManifestError
+from meshseg.report import collect, load_manifest, report
+from meshseg.report.aggregate import Bootstrap, average_cell, average_row, bootstrap_ci, cell_rng, refinement_gain
 from meshseg.report.app import main as report_main
+from meshseg.report.cells import Cell, Row, Table, progress
 from meshseg.report.config import compose_config, run_overrides, split_argv
 from meshseg.report.manifest import Column
-from meshseg.report.table import Cell, Row, Table, _averages, bootstrap_ci, cell_rng, progress, refinement_gain
 from meshseg.report.write import FILES
 from meshseg.reproduce import MissingCell, missing_cells, reproduce
 from meshseg.reproduce import main as reproduce_main
@@ -82,15 +85,15 @@ def test_bootstrap_of_sets_resamples_each_set_and_weighs_sets_equally():
 
 
 def test_average_row_is_the_mean_of_set_values_and_needs_every_set():
-    a = Cell(COL, None, accs=np.array([100.0, 100.0, 100.0, 100.0]), folds=2, value=100.0)
-    b = Cell(COL, None, accs=np.array([50.0]), folds=1, value=50.0)
-    manifest = type("M", (), {"columns": (COL,)})()
-    (avg,) = _averages(manifest, [[a], [b]], (80.0,), 200, 0.95, 0, ("average", "g", "Average"))
+    a = Cell(COL, None, value=100.0, n_meshes=4, folds=2)
+    b = Cell(COL, None, value=50.0, n_meshes=1, folds=1)
+    samples = [np.full(4, 100.0), np.array([50.0])]
+    avg = average_cell(COL, 80.0, [a, b], samples, Bootstrap(200), ("average", "g", "Average", "a"))
     assert avg.status == "ok" and avg.value == pytest.approx(75.0) and avg.delta == pytest.approx(-5.0)
-    assert avg.n_meshes == 5
+    assert avg.n_meshes == 5 and avg.ci == pytest.approx((75.0, 75.0))
     b2 = Cell(COL, None, folds=5, missing=(1, 3))
     assert b2.status == "incomplete" and b2.why() == "2 of 5 folds missing" and b2.value is None
-    (avg2,) = _averages(manifest, [[a], [b2]], (80.0,), 200, 0.95, 0, ("average", "g", "Average"))
+    avg2 = average_cell(COL, 80.0, [a, b2], samples[:1], Bootstrap(200), ("average", "g", "Average", "a"))
     assert avg2.status == "incomplete" and avg2.value is None and avg2.why() == "1 of 2 sets not complete"
     assert Cell(Column("p", "P", None), 93.0).status == "published"
 
@@ -100,8 +103,12 @@ def test_the_refinement_block_is_refined_minus_raw_mesh_by_mesh():
     the mean over sets ((1 + -1) / 2 = 0), and the markdown shows raw -> refined for each."""
     from meshseg.report.write import markdown, refinement_csv
 
-    s1 = Cell(COL, None, accs=np.array([90.0, 80.0]), gains=np.array([2.0, 0.0]), folds=1, value=85.0, ci=(80.0, 90.0))
-    s2 = Cell(COL, None, accs=np.array([70.0]), gains=np.array([-1.0]), folds=1, value=70.0, ci=(70.0, 70.0))
+    s1 = Cell(COL, None, value=85.0, ci=(80.0, 90.0), n_meshes=2, folds=1)
+    s2 = Cell(COL, None, value=70.0, ci=(70.0, 70.0), n_meshes=1, folds=1)
+    meshes = pd.DataFrame(
+        {"group": "g", "row": ["s1", "s1", "s2"], "column": "a", "mesh": ["1", "2", "3"]}
+        | {"acc": [90.0, 80.0, 70.0], "acc_raw": [88.0, 80.0, 71.0]}  # gains 2, 0 and -1
+    )
     manifest = type(
         "M",
         (),
@@ -115,20 +122,22 @@ def test_the_refinement_block_is_refined_minus_raw_mesh_by_mesh():
             "compared_with": "Published",
         },
     )()
-    (avg,) = _averages(manifest, [[s1], [s2]], (None,), 200, 0.95, 0, ("average", "g", "Average"))
-    rows = [Row("s1", "set", "g", [s1]), Row("s2", "set", "g", [s2]), Row("Average", "average", "g", [avg])]
-    table = Table(manifest, rows, (), "acc", 0.95)
-    gains = refinement_gain(table, "a", n_boot=400)
+    sets = [Row("s1", "set", "g", (s1,)), Row("s2", "set", "g", (s2,))]
+    table = Table(manifest, (), (), "acc", 0.95, meshes=meshes)
+    table = replace(table, rows=(*sets, average_row(table, "Average", "average", sets, (None,), Bootstrap(200))))
+    gains = refinement_gain(table, "a", Bootstrap(400))
     assert [g.value for g in gains] == pytest.approx([1.0, -1.0, 0.0])
     assert gains[0].ci == pytest.approx((0.0, 2.0)) and gains[1].ci == pytest.approx((-1.0, -1.0))
     assert [g.n_meshes for g in gains] == [2, 1, 3]
-    table.refinement = [(COL, gains)]
+    table = replace(table, refinement=((COL, gains),))
     md = markdown(table)
     assert "| s1 | 84.00 → 85.00 (+1.00 [+0.00, +2.00]) |" in md and "| s2 | 71.00 → 70.00 (-1.00" in md
     assert "| **Average** | 77.50 → 77.50 (+0.00" in md and "Sets the refinement raised: A 1 of 2." in md
     assert refinement_csv(table).splitlines()[1].startswith("s1,set,a,84.0000,85.0000,1.0000,0.0000,2.0000,2,")
-    s2.gains = None  # a column without raw accuracies (scored from disk) has no refinement row
-    assert refinement_gain(table, "a")[1].why == "no raw accuracies" and refinement_gain(table, "a")[2].value is None
+    # a column without raw accuracies (scored from disk) has no refinement row
+    table = replace(table, meshes=meshes.assign(acc_raw=[88.0, 80.0, np.nan]))
+    gains = refinement_gain(table, "a", Bootstrap())
+    assert gains[1].why == "no raw accuracies" and gains[2].value is None
 
 
 def test_a_cells_generator_is_its_identitys():
@@ -150,7 +159,7 @@ def test_missing_cells_are_structured_and_make_their_sweeps():
     gap = Cell(
         COL, None, folds=5, missing=(1, 3), overrides=("dataset=psb", "model=cnn1d", "budget=cpu"), category="Teddy"
     )
-    ok = Cell(COL, None, accs=np.array([90.0]), folds=1)
+    ok = Cell(COL, None, n_meshes=1, folds=1)
     rows = [
         Row("Teddy", "set", "PSB", [gap]),
         Row("Cup", "set", "PSB", [ok]),
@@ -164,7 +173,7 @@ def test_missing_cells_are_structured_and_make_their_sweeps():
 def test_progress_counts_the_cells_no_run_can_fill_apart():
     """Table 4 has COSEG cells whose data is not here: 'complete' counts the cells runs can fill, and says
     how many more are unavailable."""
-    ok = Cell(COL, None, accs=np.array([90.0]), folds=1)
+    ok = Cell(COL, None, n_meshes=1, folds=1)
     gone = Cell(COL, None, problem="dataset coseg has no category 'Vases'")
     gap = Cell(COL, None, folds=5, missing=(2,), seconds=(60.0, 80.0, 100.0, 120.0))
     rows = [Row("Teddy", "set", "PSB", [ok]), Row("Vases", "set", "COSEG", [gone])]
@@ -432,9 +441,9 @@ def test_a_cells_interval_does_not_depend_on_the_other_rows(smoke_store, cache_d
         monkeypatch.setenv(k, v)
     manifest = load_manifest(SYNTH)
     cis = lambda table: {(r.label, c.column.key): c.ci for r in table.rows for c in r.cells}
-    full = cis(collect(manifest, SMOKE, n_boot=300))
-    cup = cis(collect(manifest, SMOKE, n_boot=300, sets=["Cup"]))
-    reseeded = cis(collect(manifest, SMOKE, n_boot=300, seed=1, sets=["Cup"]))
+    full = cis(collect(manifest, SMOKE, boot=Bootstrap(300)))
+    cup = cis(collect(manifest, SMOKE, sets=["Cup"], boot=Bootstrap(300)))
+    reseeded = cis(collect(manifest, SMOKE, sets=["Cup"], boot=Bootstrap(300, seed=1)))
     assert set(cup) == {("Cup", k) for k in ("3B", "1B", "rf")} and len(full) == 12
     assert all(cup[k] == full[k] and cup[k][0] < cup[k][1] for k in cup)
     assert all(reseeded[k] != cup[k] for k in cup)
@@ -530,8 +539,8 @@ def test_the_report_prints_the_papers_numbers(stem, tmp_path, cache_dir, monkeyp
     monkeypatch.setenv("MESHSEG_CACHE_DIR", str(cache_dir))
     monkeypatch.setenv("MESHSEG_MLFLOW_DIR", str(tmp_path / "mlruns"))
 
-    def not_scored(cell, *args):  # a column from labellings on disk has no published number: not scored here
-        cell.problem = "not scored in this test"
+    def not_scored(plan):  # a column from labellings on disk has no published number: not scored here
+        return replace(plan, cell=replace(plan.cell, problem="not scored in this test"))
 
     monkeypatch.setattr("meshseg.report.table._fill_predictions", not_scored)
     path = REPO / f"experiments/{stem}.yaml"

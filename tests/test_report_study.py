@@ -8,15 +8,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
-from conftest import REPO
+from conftest import REPO, tiny_manifest, tiny_psb
 from omegaconf import OmegaConf
-from test_predictions_column import MESH1, MESH2
 
-from meshseg.report import ManifestError, collect, load_manifest, report
-from meshseg.report.config import hydra_scope
+from meshseg.errors import ManifestError
+from meshseg.report import collect, load_manifest, report
+from meshseg.report.aggregate import Bootstrap
+from meshseg.report.cells import progress
 from meshseg.report.curves import curve_panels
-from meshseg.report.table import progress
 from meshseg.report.write import write_report
 from meshseg.reproduce import MissingCell, missing_cells, reproduce
 from meshseg.tracking import Tracker
@@ -26,12 +25,7 @@ from meshseg.tracking import Tracker
 def tiny(tmp_path, monkeypatch):
     """An L-PSB-shaped folder (category Tiny, meshes 1 and 2), labellings of them scoring 80 and 66.67 (pred)
     and 100 and 66.67 (pred2), and run overrides that point the runs' store into tmp_path."""
-    d = tmp_path / "db/Tiny"
-    d.mkdir(parents=True)
-    (d / "1.off").write_text(MESH1)
-    (d / "1_labels.txt").write_text("head\n1\nbody\n2\n")
-    (d / "2.off").write_text(MESH2)
-    (d / "2_labels.txt").write_text("head\n1 2\nbody\n3\n")
+    tiny_psb(tmp_path)
     for name, one, two in (
         ("pred", "body\n1 2\n", "head\n1\nbody\n2 3\n"),
         ("pred2", "head\n1\nbody\n2\n", "head\n1 2 3\n"),
@@ -50,27 +44,9 @@ def run_args(tiny) -> list[str]:
 def study(tiny, columns, **keys) -> Path:
     """Manifest `study`: sets One and Two, both the category Tiny (published 90 and 91 in every column)."""
     n = len(columns)
-    doc = {
-        "name": "study",
-        "title": "t",
-        "overrides": ["dataset=psb", f"dataset.root={tiny / 'db'}", "split=loo"],
-        "columns": columns,
-        "groups": [
-            {
-                "name": "g",
-                "average": "Average",
-                "published_average": [90.5] * n,
-                "sets": [
-                    {"name": "One", "category": "Tiny", "published": [90.0] * n},
-                    {"name": "Two", "category": "Tiny", "published": [91.0] * n},
-                ],
-            }
-        ],
-        **keys,
-    }
-    path = tiny / "study.yaml"
-    path.write_text(yaml.safe_dump(doc))
-    return path
+    sets = [{"name": "One", "category": "Tiny", "published": [90.0] * n}]
+    sets.append({"name": "Two", "category": "Tiny", "published": [91.0] * n})
+    return tiny_manifest(tiny, "study", columns, sets, 90.5, **keys)
 
 
 def labellings(tiny, key: str, folder: str, **more) -> dict:
@@ -92,7 +68,7 @@ def line(md: str, start: str) -> str:
 def test_a_column_restricted_to_some_sets_is_na_elsewhere_and_never_launched(tiny):
     cols = [labellings(tiny, "K", "pred"), {"key": "R", "label": "R", "overrides": ["model=cnn1d"], "sets": ["Two"]}]
     path = study(tiny, cols)
-    table = collect(load_manifest(path), run_args(tiny), n_boot=50)
+    table = collect(load_manifest(path), run_args(tiny), boot=Bootstrap(50))
     status = {(r.label, c.column.key): c.status for r in table.rows for c in r.cells}
     assert status == {
         ("One", "K"): "ok",
@@ -195,7 +171,7 @@ def test_the_manifests_pairs_make_one_block_each_and_report_paired_replaces_them
     table, _, _ = report(path, [*args, "report.paired=[[C,B],[A,B]]", f"report.out_dir={tiny / 'two'}"])
     assert [(p.a.key, p.b.key) for p in table.pairs] == [("C", "B"), ("A", "B")]
     table, files, _ = report(path, [*args, "report.paired=[]", f"report.out_dir={tiny / 'none'}"])
-    assert table.pairs == [] and not (tiny / "none/study/paired.csv").exists()
+    assert table.pairs == () and not (tiny / "none/study/paired.csv").exists()
     # report.columns: a pair loses its block with either of its columns
     table, _, _ = report(path, [*args, "report.columns=[C,B]", f"report.out_dir={tiny / 'cols'}"])
     assert [(p.a.key, p.b.key) for p in table.pairs] == [("C", "B")]
@@ -207,16 +183,14 @@ def test_the_manifests_pairs_make_one_block_each_and_report_paired_replaces_them
 def log_fold_runs(tiny, path: Path, key: str, counts: list[dict], acc: float) -> None:
     """FINISHED fold runs of column `key` on category Tiny, found by the config hash the report computes, each
     logging `counts` (one dict per leave-one-out fold) and `acc` on its test mesh."""
-    from hydra import compose
-
+    from meshseg.config import run_config
     from meshseg.data.datasets import build_dataset
     from meshseg.data.splits import folds_for
     from meshseg.tracking import fold_identity
 
     m = load_manifest(path)
     (column,) = [c for c in m.columns if c.key == key]
-    with hydra_scope():
-        cfg = compose("run", overrides=[*m.cell_overrides(m.groups[0], column), *run_args(tiny)])
+    cfg = run_config([*m.cell_overrides(m.groups[0], column), *run_args(tiny)])
     resolved = OmegaConf.to_container(cfg, resolve=True)
     dataset = build_dataset(cfg.dataset)
     tracker = Tracker(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_dir)
@@ -242,7 +216,7 @@ def test_the_learning_curve_places_each_cell_at_its_runs_samples_seen(tiny):
     four = [{"n_train_samples": 12, "n_epochs": 15, "n_train_distinct": 20}, {"n_train_samples": 8, "n_epochs": 16}]
     log_fold_runs(tiny, path, "1B", one, 0.9)
     log_fold_runs(tiny, path, "1B_4k", four, 0.95)
-    table = collect(load_manifest(path), run_args(tiny), n_boot=50)
+    table = collect(load_manifest(path), run_args(tiny), boot=Bootstrap(50))
     panels = curve_panels(table)
     assert [p.set for p in panels] == ["One", "Two"]
     assert [(q.column, q.x, q.value) for q in panels[0].lines["1B"]] == [("1B", 37.5, pytest.approx(90.0))]
@@ -260,11 +234,11 @@ def test_the_learning_curve_places_each_cell_at_its_runs_samples_seen(tiny):
 
     # x: distinct = the faces any epoch trained on; a run from before n_train_distinct counts n_train_samples
     curves = {"x": "distinct", "series": {"1B": ["1B", "1B_4k"]}}
-    distinct = collect(load_manifest(study(tiny, cols, curves=curves)), run_args(tiny), n_boot=50)
+    distinct = collect(load_manifest(study(tiny, cols, curves=curves)), run_args(tiny), boot=Bootstrap(50))
     (p,) = [p for p in curve_panels(distinct) if p.set == "Two"]
     assert [q.x for q in p.lines["1B"]] == [2.5, 14.0]
     # no `curves:`, no figure
-    plain = collect(load_manifest(study(tiny, cols)), run_args(tiny), n_boot=50)
+    plain = collect(load_manifest(study(tiny, cols)), run_args(tiny), boot=Bootstrap(50))
     assert curve_panels(plain) == [] and not any(
         f.name == "learning_curve.png" for f in write_report(plain, tiny / "p")
     )

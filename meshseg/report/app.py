@@ -19,11 +19,12 @@ from omegaconf import DictConfig
 
 from meshseg import CONF_DIR
 from meshseg.errors import MeshsegError
-from meshseg.report.claims import claims_from_config, is_claims_file, summary_table
+from meshseg.report.cells import Table
+from meshseg.report.claims import claims_from_config, summary_table
+from meshseg.report.claims_file import is_claims_file
 from meshseg.report.config import check_config, compose_config, hydra_argv
 from meshseg.report.manifest import load_manifest
 from meshseg.report.publish import build, publish, summary
-from meshseg.report.table import Table
 
 #: a user's mistake (bad manifest, bad setting, unreadable data): `error: <message>` and this exit status
 ERROR_EXIT = 2

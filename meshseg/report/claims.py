@@ -23,130 +23,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import yaml
 
-from meshseg.report.manifest import ManifestError
-from meshseg.report.table import Cell, Table, bootstrap_ci, cell_rng
-
-#: what a claim's `test` may be
-TESTS = ("mean", "every_set", "most_sets", "equal", "refinement")
-VERDICTS = ("reproduced", "contradicted", "inconclusive", "partly", "not yet run", "no data")
-
-
-@dataclass(frozen=True)
-class Claim:
-    id: str
-    text: str  # the paper's sentence, quoted or closely paraphrased
-    source: str  # where in the paper (section, table label)
-    table: str  # the manifest (experiments/<table>.yaml) whose columns it compares
-    a: str  # column key: the side the paper says is better (or the column refined, for `refinement`)
-    b: str | None  # column key: the other side (None for `refinement`)
-    test: str = "mean"
-    sets: tuple[str, ...] | None = None  # only these sets (names as printed); None: every set of `group`
-    group: str | None = None  # the manifest's group (None: its first)
-    margin: float = 0.5  # `equal`: how close counts as equal, points
-    min_share: float = 0.75  # `most_sets`: the share of sets that must go the claimed way
-    models: tuple[str, ...] = ()  # the budget study's models its evidence rests on (1B, 3B): the budget note
-
-
-@dataclass(frozen=True)
-class TableSpec:
-    table: str  # manifest name
-    label: str  # e.g. "Table 2"
-    group: str | None = None
-
-
-@dataclass(frozen=True)
-class ClaimsFile:
-    name: str
-    title: str
-    rule: str
-    overrides: tuple[str, ...]
-    claims: tuple[Claim, ...]
-    tables: tuple[TableSpec, ...]
-    full: float  # a table's run columns all within this of the published averages (points): full
-    partial: float  # some run column within this: partial
-    study: (
-        dict  # budget_study: {table, compare: {model: [a, b]}, fold_lists: {model: [a, b]}, floor_table, floor_columns}
-    )
-    path: Path
-
-    def tables_needed(self) -> dict[str, set[str]]:
-        """{manifest name: the column keys the claims, table verdicts and budget notes read}."""
-        need: dict[str, set[str]] = {}
-        for c in self.claims:
-            need.setdefault(c.table, set()).update(k for k in (c.a, c.b) if k)
-        for t in self.tables:
-            need.setdefault(t.table, set())  # every run column: filled in by the caller from the manifest
-        if self.study:
-            pairs = [*self.study.get("compare", {}).values(), *self.study.get("fold_lists", {}).values()]
-            need.setdefault(self.study["table"], set()).update(k for p in pairs for k in p)
-            if self.study.get("floor_table"):
-                need.setdefault(self.study["floor_table"], set()).update(self.study["floor_columns"].values())
-        return need
-
-
-def is_claims_file(path) -> bool:
-    """Whether a YAML file is a claims file (a mapping with `claims:`) rather than a study manifest."""
-    try:
-        doc = yaml.safe_load(Path(path).read_text())
-    except (OSError, yaml.YAMLError):
-        return False
-    return isinstance(doc, dict) and "claims" in doc
-
-
-def load_claims(path) -> ClaimsFile:
-    """Read and check a claims file; every problem is reported with the file's name."""
-    path = Path(path)
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as e:
-        raise ManifestError(path, f"cannot read the claims file: {e}") from None
-    if not isinstance(doc, dict) or not isinstance(doc.get("claims"), list) or not doc["claims"]:
-        raise ManifestError(path, "a claims file is a mapping with a non-empty `claims:` list")
-    claims, seen = [], set()
-    for i, c in enumerate(doc["claims"]):
-        where = f"claims[{i}]"
-        if not isinstance(c, dict) or not {"id", "text", "table", "a"} <= set(c):
-            raise ManifestError(path, f"{where}: needs id, text, table and a")
-        test = c.get("test", "mean")
-        if test not in TESTS:
-            raise ManifestError(path, f"{where} ({c['id']}): test {test!r} is not one of {list(TESTS)}")
-        if (test == "refinement") != (c.get("b") is None):
-            raise ManifestError(path, f"{where} ({c['id']}): b is required, except with test: refinement")
-        if str(c["id"]) in seen:
-            raise ManifestError(path, f"{where}: id {c['id']!r} is used twice")
-        seen.add(str(c["id"]))
-        claims.append(
-            Claim(
-                str(c["id"]),
-                " ".join(str(c["text"]).split()),
-                str(c.get("source", "")),
-                str(c["table"]),
-                str(c["a"]),
-                None if c.get("b") is None else str(c["b"]),
-                test,
-                None if c.get("sets") is None else tuple(str(s) for s in c["sets"]),
-                c.get("group"),
-                float(c.get("margin", 0.5)),
-                float(c.get("min_share", 0.75)),
-                tuple(str(m) for m in c.get("models", ())),
-            )
-        )
-    tables = tuple(TableSpec(str(t["table"]), str(t["label"]), t.get("group")) for t in doc.get("tables") or [])
-    thresholds = doc.get("thresholds") or {}
-    return ClaimsFile(
-        str(doc.get("name", path.stem)),
-        str(doc.get("title", "Claims")),
-        " ".join(str(doc.get("rule", "")).split()),
-        tuple(doc.get("overrides") or ()),
-        tuple(claims),
-        tables,
-        float(thresholds.get("full", 1.0)),
-        float(thresholds.get("partial", 2.0)),
-        dict(doc.get("budget_study") or {}),
-        path,
-    )
+from meshseg.errors import ManifestError
+from meshseg.report.aggregate import Bootstrap, accuracies, gains, paired_differences
+from meshseg.report.cells import Cell, Table
+from meshseg.report.claims_file import Claim, ClaimsFile, TableSpec, load_claims
 
 
 @dataclass
@@ -192,13 +73,14 @@ def _rows(table: Table, claim: Claim):
     keys = [c.key for c in table.columns]
     for k in (claim.a, claim.b):
         if k is not None and k not in keys:
-            raise ManifestError(table.manifest.path, f"claim {claim.id}: no column {k!r}; its columns are {keys}")
+            raise ManifestError(f"{table.manifest.path}: claim {claim.id}: no column {k!r}; its columns are {keys}")
     group = claim.group or table.manifest.groups[0].name
     rows = [r for r in table.rows if r.kind == "set" and r.group == group]
     if claim.sets is not None:
         unknown = set(claim.sets) - {r.label for r in rows}
         if unknown:
-            raise ManifestError(table.manifest.path, f"claim {claim.id}: no set(s) {sorted(unknown)} in group {group}")
+            where = f"{table.manifest.path}: claim {claim.id}"
+            raise ManifestError(f"{where}: no set(s) {sorted(unknown)} in group {group}")
         rows = [r for r in rows if r.label in claim.sets]
     ia, ib = keys.index(claim.a), None if claim.b is None else keys.index(claim.b)
     # a set outside a column's `sets:` (a budget-study column run on some sets only) is no part of the claim
@@ -227,20 +109,18 @@ def _published_difference(table: Table, claim: Claim, rows, ia: int, ib: int | N
     return float(np.mean([pa - pb for pa, pb in pubs]))
 
 
-def _differences(rows, ia: int, ib: int | None, test: str) -> list[np.ndarray]:
+def _differences(table: Table, rows, claim: Claim, ib: int | None) -> list[np.ndarray]:
     """Per set row, the per-mesh differences the claim is judged on (every cell complete)."""
     out = []
     for r in rows:
-        ca = r.cells[ia]
-        if test == "refinement":
-            out.append(np.asarray(ca.gains, np.float64))
+        if claim.test == "refinement":
+            out.append(gains(table.meshes, r, claim.a))
             continue
         cb = r.cells[ib]
         if cb.column.overrides is None:  # published only: a's accuracy against the paper's number
-            out.append(np.asarray(ca.accs, np.float64) - cb.published)
+            out.append(accuracies(table.meshes, r, claim.a, table.metric) - cb.published)
             continue
-        acc_b = dict(cb.scored)
-        out.append(np.array([x - acc_b[m] for m, x in ca.scored if m in acc_b]))
+        out.append(paired_differences(table.meshes, r, claim.a, claim.b, table.metric))
     return out
 
 
@@ -275,16 +155,16 @@ def judge(claim: Claim, table: Table, n_boot: int = 2000, seed: int = 0) -> Verd
     if any(c.status == "incomplete" for c in cells):
         v.verdict, v.missing_runs = "not yet run", sum(len(c.missing) for c in cells if c.status == "incomplete")
         return v
-    if claim.test == "refinement" and any(r.cells[ia].gains is None for r in rows):
+    if claim.test == "refinement" and any(gains(table.meshes, r, claim.a) is None for r in rows):
         v.verdict = "no data"
         v.notes.append("no raw accuracies logged")
         return v
-    diffs = _differences(rows, ia, ib, claim.test)
+    boot = Bootstrap(n_boot, table.level, seed)
+    diffs = _differences(table, rows, claim, ib)
     for r, d in zip(rows, diffs):
-        ci = bootstrap_ci([d], n_boot, table.level, cell_rng(seed, "claim", claim.id, r.label))
-        v.sets.append(SetDiff(r.label, float(d.mean()), ci, len(d)))
+        v.sets.append(SetDiff(r.label, float(d.mean()), boot.interval([d], "claim", claim.id, r.label), len(d)))
     v.value = float(np.mean([d.mean() for d in diffs]))
-    v.ci = bootstrap_ci(diffs, n_boot, table.level, cell_rng(seed, "claim", claim.id))
+    v.ci = boot.interval(diffs, "claim", claim.id)
     v.verdict, v.against = decide(claim.test, v.ci, v.sets, claim.margin, claim.min_share)
     return v
 
@@ -508,7 +388,7 @@ def collect_tables(claims: ClaimsFile, cfg) -> dict[str, Table]:
     does): each manifest once, with the columns its claims, its table verdicts and the budget notes need."""
     from meshseg.report.config import run_overrides
     from meshseg.report.manifest import load_manifest
-    from meshseg.report.publish import import_results
+    from meshseg.report.publish import bootstrap, import_results
     from meshseg.report.table import collect
 
     s = cfg.report
@@ -525,10 +405,8 @@ def collect_tables(claims: ClaimsFile, cfg) -> dict[str, Table]:
             manifest,
             overrides,
             metric=s.metric,
-            n_boot=int(s.n_boot),
-            level=float(s.level),
-            seed=int(s.seed),
             paired=[],  # the claims pair columns themselves
+            boot=bootstrap(s),
         )
     return tables
 

@@ -18,13 +18,11 @@ Run overrides cannot be Hydra overrides of the app itself: they are checked agai
 from __future__ import annotations
 
 import re
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from meshseg import CONF_DIR
+from meshseg.config import hydra_scope
 from meshseg.data.io import check_output_folder
 from meshseg.errors import ConfigError
 from meshseg.tracking import FoldRecord
@@ -35,20 +33,6 @@ METRIC_TEXT = dict(zip(FoldRecord.MESH_METRICS, ("after refinement", "before ref
 APP_KEYS = ("manifest", "overrides", "report")
 #: top-level keys, and config groups, that both the app and the runs take
 SHARED_KEYS = ("hydra", "paths")
-
-
-@contextmanager
-def hydra_scope() -> Iterator[None]:
-    """Hydra's compose API on conf/. Inside a Hydra app (the report's own) Hydra is initialised already,
-    on the same config folder, and a second initialisation would be refused: compose there."""
-    from hydra import initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-
-    if GlobalHydra.instance().is_initialized():
-        yield
-        return
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        yield
 
 
 def _key(arg: str) -> str:
@@ -148,25 +132,45 @@ def _pairs(value) -> bool:
 
 
 def check_config(cfg: DictConfig) -> None:
-    """Settings no YAML can check; each message says what is allowed."""
+    """Settings no YAML can check, in the order a user meets them; each message says what is allowed."""
     if OmegaConf.is_missing(cfg, "manifest") or not str(cfg.manifest):
         raise ConfigError("no manifest: give one first, e.g. python -m meshseg.report experiments/synthetic.yaml")
     if not isinstance(cfg.overrides, ListConfig):
         raise ConfigError(f"overrides={cfg.overrides} must be a list of run overrides")
-    s = cfg.report
+    _check_statistics(cfg.report)
+    _check_folders(cfg.report)
+    _check_selection(cfg.report)
+    for key in ("log", *(("dry_run",) if "dry_run" in cfg.report else ())):
+        if not isinstance(cfg.report[key], bool):
+            raise ConfigError(f"report.{key}={cfg.report[key]} must be true or false")
+
+
+def _count(value, least: int) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= least
+
+
+def _check_statistics(s: DictConfig) -> None:
+    """report.metric and the bootstrap's settings."""
     if s.metric not in FoldRecord.MESH_METRICS:
         choices = ", ".join(f"{k} ({text})" for k, text in METRIC_TEXT.items())
         raise ConfigError(f"report.metric={s.metric} is not allowed: choose {choices}")
-    if not (isinstance(s.n_boot, int) and not isinstance(s.n_boot, bool) and s.n_boot >= 1):
+    if not _count(s.n_boot, 1):
         raise ConfigError(f"report.n_boot={s.n_boot} must be an integer >= 1")
     if not (isinstance(s.level, (int, float)) and 0 < s.level < 1):
         raise ConfigError(f"report.level={s.level} must be a number between 0 and 1 (0.95: a 95 % interval)")
-    if not (isinstance(s.seed, int) and not isinstance(s.seed, bool) and s.seed >= 0):
+    if not _count(s.seed, 0):
         raise ConfigError(f"report.seed={s.seed} must be an integer >= 0")
-    # output and input folders before any table is built (a bad path is no reason to read every run first)
+
+
+def _check_folders(s: DictConfig) -> None:
+    """The output and input folders, before any table is built (a bad path is no reason to read every run first)."""
     if s.get("results") not in (None, "results") and not Path(str(s.results)).is_dir():
         raise ConfigError(f"report.results={s.results}: no such folder of results records (null: import none)")
     check_output_folder(s.out_dir, "report.out_dir")
+
+
+def _check_selection(s: DictConfig) -> None:
+    """report.sets, report.columns and report.paired: lists of the right shape (the table checks the names)."""
     if s.sets is not None and not isinstance(s.sets, ListConfig):
         raise ConfigError(f"report.sets={s.sets} must be a list of set or category names, e.g. report.sets=[Teddy]")
     if s.get("columns") is not None and not (
@@ -178,6 +182,3 @@ def check_config(cfg: DictConfig) -> None:
             f"report.paired={s.paired} must be two column keys, e.g. report.paired=[cnn1d,K2010], or a list of "
             "such pairs, e.g. [[3B,1B],[1B,ToG15]] ([] for none)"
         )
-    for key in ("log", *(("dry_run",) if "dry_run" in s else ())):
-        if not isinstance(s[key], bool):
-            raise ConfigError(f"report.{key}={s[key]} must be true or false")

@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from meshseg.report.cells import Cell, Table
 from meshseg.report.config import METRIC_TEXT
-from meshseg.report.table import Cell, Table
 
 #: the x axis of each `curves.x`
 X_TEXT = {

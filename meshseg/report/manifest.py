@@ -1,5 +1,8 @@
 """A study manifest (experiments/*.yaml): which runs make each cell of one paper table or figure,
-and the published numbers beside them. The schema is in experiments/README.md."""
+and the published numbers beside them, as frozen dataclasses. The schema is in experiments/README.md.
+
+`load_manifest` is the one place a manifest is checked: each part is read by its own function, which says
+what is wrong with it (`_Invalid`), and every problem reaches the user as one ManifestError naming the file."""
 
 from __future__ import annotations
 
@@ -8,15 +11,7 @@ from pathlib import Path
 
 import yaml
 
-from meshseg import errors
-
-
-class ManifestError(errors.ManifestError):
-    """A manifest that cannot be used; the message names the file and the problem."""
-
-    def __init__(self, path, problem: str):
-        super().__init__(f"{path}: {problem}")
-
+from meshseg.errors import ConfigError, ManifestError
 
 #: formats of predictions on disk a column can score (`predictions: {path, format}`)
 PREDICTION_FORMATS = ("psb_labels",)
@@ -92,7 +87,7 @@ class Manifest:
         index = {c.key: j for j, c in enumerate(self.columns)}
         unknown = [k for k in keys if k not in index]
         if unknown or len(set(keys)) != len(keys) or not keys:
-            raise errors.ConfigError(
+            raise ConfigError(
                 f"report.columns={list(keys)}: give distinct column keys of {self.name}: {', '.join(index)}"
             )
         pick = [index[k] for k in keys]
@@ -128,28 +123,79 @@ class Manifest:
         return [*self.overrides, *group.overrides, *(column.overrides or ())]
 
 
-def _overrides(value, path, where: str) -> tuple[str, ...]:
+class _Invalid(Exception):
+    """One problem of a manifest's content; load_manifest adds the file's name."""
+
+
+def _overrides(value, where: str) -> tuple[str, ...]:
     if value is None:
         return ()
     if not isinstance(value, list) or not all(isinstance(o, str) and "=" in o for o in value):
-        raise ManifestError(path, f"{where}: overrides must be a list of key=value strings, got {value!r}")
+        raise _Invalid(f"{where}: overrides must be a list of key=value strings, got {value!r}")
     return tuple(value)
 
 
-def _numbers(value, n: int, path, where: str) -> tuple[float | None, ...]:
+def _numbers(value, n: int, where: str) -> tuple[float | None, ...]:
     if value is None:
         return (None,) * n
     if not isinstance(value, list) or len(value) != n:
-        raise ManifestError(
-            path, f"{where}: expected a list of {n} numbers (one per column, null for none), got {value!r}"
-        )
+        raise _Invalid(f"{where}: expected a list of {n} numbers (one per column, null for none), got {value!r}")
     for v in value:
         if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float))):
-            raise ManifestError(path, f"{where}: {v!r} is not a number")
+            raise _Invalid(f"{where}: {v!r} is not a number")
     return tuple(None if v is None else float(v) for v in value)
 
 
-def _restricted(columns: list[Column], sets: dict, groups: list[Group], path) -> list[Column]:
+def _predictions(value, key: str) -> Predictions | None:
+    if value is None:
+        return None
+    if not isinstance(value, dict) or set(value) != {"path", "format"} or value["format"] not in PREDICTION_FORMATS:
+        raise _Invalid(f"column {key}: predictions must be {{path: ..., format: one of {PREDICTION_FORMATS}}}")
+    return Predictions(str(value["path"]), str(value["format"]))
+
+
+def _column(value, i: int) -> Column:
+    """One entry of `columns:` (its `sets:` are read once the sets are known: _restricted)."""
+    if not isinstance(value, dict) or not {"key", "label"} <= set(value):
+        raise _Invalid(f"columns[{i}]: needs key and label")
+    over = value.get("overrides")
+    over = None if over is None else _overrides(over, f"column {value['key']}")
+    pred = _predictions(value.get("predictions"), value["key"])
+    if pred is not None:
+        over = over or ()  # scored from disk, yet a run config says which dataset and split
+    return Column(str(value["key"]), str(value["label"]), over, pred)
+
+
+def _columns(value) -> tuple[Column, ...]:
+    columns = tuple(_column(c, i) for i, c in enumerate(value or []))
+    if not columns or len({c.key for c in columns}) != len(columns):
+        raise _Invalid("columns must be a non-empty list with distinct keys")
+    return columns
+
+
+def _set(value, n: int, group: str) -> Set:
+    if not isinstance(value, dict) or "name" not in value:
+        raise _Invalid(f"group {group}: each set needs a name")
+    name = value["name"]
+    published = _numbers(value.get("published"), n, f"set {name} published")
+    return Set(str(name), str(value.get("category", name)), published, value.get("test_meshes"))
+
+
+def _group(value, n: int) -> Group:
+    name = str(value.get("name", "?"))
+    sets = tuple(_set(s, n, name) for s in value.get("sets") or [])
+    if not sets:
+        raise _Invalid(f"group {name} has no sets")
+    return Group(
+        name,
+        _overrides(value.get("overrides"), f"group {name}"),
+        sets,
+        value.get("average"),
+        _numbers(value.get("published_average"), n, f"group {name} published_average"),
+    )
+
+
+def _restricted(columns: tuple[Column, ...], sets: dict, groups: tuple[Group, ...]) -> tuple[Column, ...]:
     """The columns with their `sets:` (given as {key: list}) as the manifest's set names. A set may be named
     by its name or its category, as report.sets takes it (budget_study's `FourLeg` is the set `Fourleg`)."""
     names: dict[str, list[str]] = {}
@@ -164,119 +210,78 @@ def _restricted(columns: list[Column], sets: dict, groups: list[Group], path) ->
             out.append(c)
             continue
         if not isinstance(given, list) or not given:
-            raise ManifestError(path, f"column {c.key}: sets must be a non-empty list of set names, got {given!r}")
+            raise _Invalid(f"column {c.key}: sets must be a non-empty list of set names, got {given!r}")
         unknown = [str(n) for n in given if str(n) not in names]
         if unknown:
             known = ", ".join(s.name for g in groups for s in g.sets)
-            raise ManifestError(path, f"column {c.key}: sets {unknown} name no set of the manifest; its sets: {known}")
+            raise _Invalid(f"column {c.key}: sets {unknown} name no set of the manifest; its sets: {known}")
         out.append(replace(c, sets=tuple(dict.fromkeys(s for n in given for s in names[str(n)]))))
-    return out
+    return tuple(out)
 
 
-def _keys(value, keys: list[str], path, where: str) -> tuple[str, ...]:
+def _keys(value, keys: list[str], where: str) -> tuple[str, ...]:
     """A list of column keys of the manifest."""
     if not isinstance(value, list) or not value:
-        raise ManifestError(path, f"{where}: expected a list of column keys, got {value!r}")
+        raise _Invalid(f"{where}: expected a list of column keys, got {value!r}")
     unknown = [str(k) for k in value if str(k) not in keys]
     if unknown:
-        raise ManifestError(path, f"{where}: {unknown} name no column; the columns are {', '.join(keys)}")
+        raise _Invalid(f"{where}: {unknown} name no column; the columns are {', '.join(keys)}")
     return tuple(str(k) for k in value)
 
 
-def _pairs(value, keys: list[str], path) -> tuple[tuple[str, str], ...]:
+def _pairs(value, keys: list[str]) -> tuple[tuple[str, str], ...]:
     """`paired:`, a list of [a, b] column-key pairs."""
     if value is None:
         return ()
     if not isinstance(value, list):
-        raise ManifestError(path, f"paired: expected a list of [a, b] column-key pairs, got {value!r}")
-    pairs = tuple(_keys(p, keys, path, f"paired {p}") for p in value)
+        raise _Invalid(f"paired: expected a list of [a, b] column-key pairs, got {value!r}")
+    pairs = tuple(_keys(p, keys, f"paired {p}") for p in value)
     bad = [list(p) for p in pairs if len(p) != 2]
     if bad:
-        raise ManifestError(path, f"paired: {bad} are not pairs [a, b] of column keys")
+        raise _Invalid(f"paired: {bad} are not pairs [a, b] of column keys")
     return pairs
 
 
-def _curves(value, keys: list[str], path) -> Curves | None:
+def _curves(value, keys: list[str]) -> Curves | None:
     """`curves: {x: samples|distinct, series: {name: [column keys in order of increasing budget]}}`."""
     if value is None:
         return None
     if not isinstance(value, dict) or set(value) != {"x", "series"} or value["x"] not in CURVE_X:
-        raise ManifestError(path, f"curves: expected {{x: one of {CURVE_X}, series: {{name: [column keys]}}}}")
+        raise _Invalid(f"curves: expected {{x: one of {CURVE_X}, series: {{name: [column keys]}}}}")
     series = value["series"]
     if not isinstance(series, dict) or not series:
-        raise ManifestError(path, f"curves: series must map names to lists of column keys, got {series!r}")
-    return Curves(value["x"], tuple((str(n), _keys(ks, keys, path, f"curves series {n}")) for n, ks in series.items()))
+        raise _Invalid(f"curves: series must map names to lists of column keys, got {series!r}")
+    return Curves(value["x"], tuple((str(n), _keys(ks, keys, f"curves series {n}")) for n, ks in series.items()))
 
 
-def load_manifest(path: str | Path) -> Manifest:
-    """Read and check a manifest; every problem is reported with the file's name."""
-    path = Path(path)
+def _document(path: Path) -> dict:
+    """The manifest file's YAML mapping, with the keys every manifest has."""
     if not path.is_file():
         shipped = sorted((Path(__file__).resolve().parents[2] / "experiments").glob("*.yaml"))
         known = ", ".join(f"experiments/{p.name}" for p in shipped)
-        raise ManifestError(path, "no such manifest file" + (f"; the shipped manifests: {known}" if known else ""))
+        raise _Invalid("no such manifest file" + (f"; the shipped manifests: {known}" if known else ""))
     try:
         doc = yaml.safe_load(path.read_text())
     except yaml.YAMLError as e:
-        raise ManifestError(path, f"not valid YAML: {e}") from None
+        raise _Invalid(f"not valid YAML: {e}") from None
     if not isinstance(doc, dict):
-        raise ManifestError(path, "a manifest is a mapping with name, columns and groups")
+        raise _Invalid("a manifest is a mapping with name, columns and groups")
     missing = [k for k in ("name", "title", "columns", "groups") if k not in doc]
     if missing:
-        raise ManifestError(path, f"missing key(s) {missing}")
+        raise _Invalid(f"missing key(s) {missing}")
     if doc["name"] != path.stem:
-        raise ManifestError(path, f"name {doc['name']!r} differs from the file name {path.stem!r}")
-    columns, restrict = [], {}
-    for i, c in enumerate(doc["columns"] or []):
-        if not isinstance(c, dict) or not {"key", "label"} <= set(c):
-            raise ManifestError(path, f"columns[{i}]: needs key and label")
-        over = c.get("overrides")
-        over = None if over is None else _overrides(over, path, f"column {c['key']}")
-        pred = c.get("predictions")
-        if pred is not None:
-            if (
-                not isinstance(pred, dict)
-                or set(pred) != {"path", "format"}
-                or pred["format"] not in PREDICTION_FORMATS
-            ):
-                raise ManifestError(
-                    path, f"column {c['key']}: predictions must be {{path: ..., format: one of {PREDICTION_FORMATS}}}"
-                )
-            pred, over = Predictions(str(pred["path"]), str(pred["format"])), over or ()
-        columns.append(Column(str(c["key"]), str(c["label"]), over, pred))
-        restrict[str(c["key"])] = c.get("sets")
-    if not columns or len({c.key for c in columns}) != len(columns):
-        raise ManifestError(path, "columns must be a non-empty list with distinct keys")
+        raise _Invalid(f"name {doc['name']!r} differs from the file name {path.stem!r}")
+    return doc
+
+
+def _manifest(doc: dict, path: Path) -> Manifest:
+    columns = _columns(doc["columns"])
     n = len(columns)
-    groups = []
-    for g in doc["groups"] or []:
-        gname = str(g.get("name", "?"))
-        sets = []
-        for s in g.get("sets") or []:
-            if not isinstance(s, dict) or "name" not in s:
-                raise ManifestError(path, f"group {gname}: each set needs a name")
-            sets.append(
-                Set(
-                    str(s["name"]),
-                    str(s.get("category", s["name"])),
-                    _numbers(s.get("published"), n, path, f"set {s['name']} published"),
-                    s.get("test_meshes"),
-                )
-            )
-        if not sets:
-            raise ManifestError(path, f"group {gname} has no sets")
-        groups.append(
-            Group(
-                gname,
-                _overrides(g.get("overrides"), path, f"group {gname}"),
-                tuple(sets),
-                g.get("average"),
-                _numbers(g.get("published_average"), n, path, f"group {gname} published_average"),
-            )
-        )
+    groups = tuple(_group(g, n) for g in doc["groups"] or [])
     if not groups:
-        raise ManifestError(path, "no groups")
-    columns = _restricted(columns, restrict, groups, path)
+        raise _Invalid("no groups")
+    restrict = {str(c["key"]): c.get("sets") for c in doc["columns"]}
+    columns = _restricted(columns, restrict, groups)
     keys = [c.key for c in columns]
     total = doc.get("total") or {}
     return Manifest(
@@ -284,13 +289,22 @@ def load_manifest(path: str | Path) -> Manifest:
         str(doc["title"]),
         str(doc.get("source", "")),
         str(doc.get("note", "") or "").strip(),
-        _overrides(doc.get("overrides"), path, "manifest"),
-        tuple(columns),
-        tuple(groups),
+        _overrides(doc.get("overrides"), "manifest"),
+        columns,
+        groups,
         total.get("label"),
-        _numbers(total.get("published"), n, path, "total published"),
+        _numbers(total.get("published"), n, "total published"),
         path,
         str(doc.get("compared_with", "Published")),
-        _pairs(doc.get("paired"), keys, path),
-        _curves(doc.get("curves"), keys, path),
+        _pairs(doc.get("paired"), keys),
+        _curves(doc.get("curves"), keys),
     )
+
+
+def load_manifest(path: str | Path) -> Manifest:
+    """Read and check a manifest; every problem is one ManifestError naming the file."""
+    path = Path(path)
+    try:
+        return _manifest(_document(path), path)
+    except _Invalid as e:
+        raise ManifestError(f"{path}: {e}") from None

@@ -5,13 +5,18 @@ from __future__ import annotations
 import hashlib
 import logging
 import re
+from dataclasses import replace
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from meshseg.report.config import hydra_scope, run_overrides
+from meshseg.config import run_config
+from meshseg.errors import ConfigError
+from meshseg.report.aggregate import Bootstrap
+from meshseg.report.cells import Table
+from meshseg.report.config import run_overrides
 from meshseg.report.manifest import Manifest
-from meshseg.report.table import Table, collect
+from meshseg.report.table import collect
 from meshseg.report.write import markdown, write_report
 
 log = logging.getLogger("meshseg.report")
@@ -21,9 +26,6 @@ def import_results(manifest: Manifest, cfg: DictConfig) -> None:
     """The shipped records under `report.results` (`results/<dataset>/...`) of the datasets the manifest
     uses, imported into the runs' store (idempotent: records already there are skipped), so that a fresh
     clone reports from `results/` with no training."""
-    from hydra import compose
-    from hydra.errors import HydraException
-
     from meshseg.results import import_records
     from meshseg.tracking import Tracker
 
@@ -34,9 +36,8 @@ def import_results(manifest: Manifest, cfg: DictConfig) -> None:
     given = [*overrides, *(o for g in manifest.groups for o in g.overrides)]
     given += [o for c in manifest.columns for o in c.overrides or ()]
     try:
-        with hydra_scope():
-            run_cfg = compose("run", overrides=overrides)
-    except HydraException:
+        run_cfg = run_config(overrides)
+    except ConfigError:
         return  # the table's own composition names the override at fault
     datasets = {o.split("=", 1)[1] for o in given if o.startswith("dataset=")}
     datasets = datasets or {run_cfg.dataset._target_.rsplit(".", 1)[1].lower()}  # PSB -> psb
@@ -57,36 +58,36 @@ def build(manifest: Manifest, cfg: DictConfig) -> Table:
     import_results(manifest, cfg)
     if s.get("columns") is not None:
         manifest = manifest.only_columns([str(k) for k in s.columns])
-    sets = None if s.sets is None else list(s.sets)
     table = collect(
         manifest,
         run_overrides(cfg),
         metric=s.metric,
-        n_boot=int(s.n_boot),
-        level=float(s.level),
-        seed=int(s.seed),
-        sets=sets,
+        sets=None if s.sets is None else list(s.sets),
         paired=None if s.get("paired") is None else OmegaConf.to_container(s.paired),  # replaces the manifest's
+        boot=bootstrap(s),
     )
     # the settings that decide which runs a table lacks go into its `meshseg.reproduce` command
+    settings = ()
     if s.get("columns") is not None:
-        table.settings += (f"report.columns=[{','.join(c.key for c in manifest.columns)}]",)
+        settings += (f"report.columns=[{','.join(c.key for c in manifest.columns)}]",)
     if s.get("results", "results") != "results":
-        table.settings += (f"report.results={'null' if s.results is None else s.results}",)
-    return table
+        settings += (f"report.results={'null' if s.results is None else s.results}",)
+    return replace(table, settings=table.settings + settings)
+
+
+def bootstrap(settings: DictConfig) -> Bootstrap:
+    """The intervals' settings of `report.*` (n_boot, level, seed)."""
+    return Bootstrap(int(settings.n_boot), float(settings.level), int(settings.seed))
 
 
 def log_report(table: Table, files: list[Path], settings: DictConfig) -> str:
     """Log the report as a run of experiment `settings.experiment` in the runs' store: its files as
     artifacts, each complete average as a metric. Returns the run id."""
-    from hydra import compose
-
     from meshseg.tracking import Tracker, git_sha
 
     m = table.manifest
     settings = OmegaConf.masked_copy(settings, [k for k in settings if k != "dry_run"])  # reproduce's own switch
-    with hydra_scope():
-        cfg = compose("run", overrides=[*m.overrides, *table.overrides])
+    cfg = run_config([*m.overrides, *table.overrides])
     tracker = Tracker(cfg.tracking.uri, settings.experiment, cfg.tracking.artifact_dir)
     ident = hashlib.sha256(repr((m.name, table.overrides, OmegaConf.to_yaml(settings))).encode()).hexdigest()[:16]
     tags = {

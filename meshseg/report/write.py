@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
+from meshseg.report.cells import Cell, Table, progress
 from meshseg.report.config import METRIC_TEXT
 from meshseg.report.curves import learning_curve_figure
-from meshseg.report.table import Cell, Table, progress
 
 #: the paper's LaTeX label in a manifest's `source`, shown in headers as its bare name (no LaTeX there)
 _LABEL = re.compile(r"\\label\{([^}]*)\}")

@@ -1,0 +1,75 @@
+"""The runs of a store as data: the FINISHED fold runs a table asks for, one row per (run, test mesh).
+
+A table finds its runs by the config hash `meshseg.run` gives them (the newest FINISHED run of a hash wins),
+so only runs made with exactly a cell's configuration (budget included) count. Each run's per-mesh table
+(FoldRecord.PER_MESH) gives the rows; the run's wall time and counts ride along on each of them."""
+
+from __future__ import annotations
+
+import csv
+import tempfile
+
+import pandas as pd
+
+from meshseg.errors import TrackingError
+from meshseg.tracking import FoldRecord, search_runs, store_uri
+
+#: count params (`n_*`) of a fold run that learning curves read (n_train_distinct: only runs made since it exists)
+RUN_COUNTS = ("n_train_samples", "n_train_distinct", "n_epochs")
+#: what a run adds to each of its test meshes' rows (with `line`, the mesh's place in the run's table)
+RUN_COLUMNS = ("config_hash", "run_id", "seconds", "counts", "line", "mesh", *FoldRecord.MESH_METRICS)
+
+
+def finished_by_hash(uri: str, experiment: str) -> dict[str, object]:
+    """The FINISHED runs of the store by config hash, the newest of each."""
+    by_hash: dict[str, object] = {}
+    for r in search_runs(uri, experiment, "attributes.status = 'FINISHED'"):
+        h = r.data.tags.get("config_hash")
+        if h and (h not in by_hash or r.info.end_time > by_hash[h].info.end_time):
+            by_hash[h] = r
+    return by_hash
+
+
+def _mesh_accuracies(client, run) -> list[tuple[str, dict[str, float]]]:
+    """(mesh id, {metric: accuracy in %} for every FoldRecord.MESH_METRICS) of each test mesh of the run,
+    from its per-mesh table (FoldRecord.PER_MESH)."""
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            path = client.download_artifacts(run.info.run_id, FoldRecord.PER_MESH, tmp)
+            with open(path, newline="") as f:
+                return [
+                    (row["mesh"], {m: 100.0 * float(row[m]) for m in FoldRecord.MESH_METRICS})
+                    for row in csv.DictReader(f)
+                ]
+    except Exception as e:  # a FINISHED run without a readable table is damage in the store, not a missing fold
+        raise TrackingError(
+            f"run {run.info.run_id} ({run.info.run_name}): cannot read {'/'.join(FoldRecord.MESH_METRICS)} from "
+            f"{FoldRecord.PER_MESH}: {type(e).__name__}: {e}"
+        ) from None
+
+
+def _run_rows(client, run) -> list[dict]:
+    """One row per test mesh of the run: its accuracies, the run's identity, wall time and counts."""
+    info, params = run.info, run.data.params
+    common = {
+        "config_hash": run.data.tags["config_hash"],
+        "run_id": info.run_id,
+        "seconds": (info.end_time - info.start_time) / 1000 if info.end_time else float("nan"),
+        "counts": {k: int(params[k]) for k in RUN_COUNTS if k in params},
+    }
+    return [{**common, "line": i, "mesh": m, **accs} for i, (m, accs) in enumerate(_mesh_accuracies(client, run))]
+
+
+def mesh_table(uri: str, experiment: str, wanted: pd.DataFrame) -> pd.DataFrame:
+    """The fold runs `wanted` names (one row per fold run of a cell: its config_hash and the cell's keys, in
+    table order) that the store at `uri` has FINISHED, one row per (wanted fold run, test mesh) with RUN_COLUMNS
+    added; a fold without a run has no row. Each run's per-mesh table is read once."""
+    from mlflow import MlflowClient
+
+    by_hash = finished_by_hash(uri, experiment)
+    found = [by_hash[h] for h in dict.fromkeys(wanted["config_hash"]) if h in by_hash]
+    client = MlflowClient(tracking_uri=store_uri(uri)) if found else None
+    runs = pd.DataFrame([row for run in found for row in _run_rows(client, run)], columns=list(RUN_COLUMNS))
+    order = wanted.assign(order=range(len(wanted)))
+    meshes = order.merge(runs, on="config_hash", how="inner")
+    return meshes.sort_values(["order", "line"], kind="stable").drop(columns=["order", "line"]).reset_index(drop=True)
