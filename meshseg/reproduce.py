@@ -26,8 +26,8 @@ import hydra
 from omegaconf import DictConfig
 
 from meshseg import CONF_DIR
-from meshseg.errors import MeshsegError
-from meshseg.report.app import ERROR_EXIT, run_app
+from meshseg.cli import ERROR_EXIT, user_errors
+from meshseg.report.app import run_app
 from meshseg.report.cells import Table
 from meshseg.report.config import check_config, compose_config
 from meshseg.report.manifest import load_manifest
@@ -109,15 +109,12 @@ def reproduce(manifest_path, args=()) -> Outcome:
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="reproduce")
 def _reproduce_app(cfg: DictConfig) -> None:
-    try:
+    with user_errors():
         outcome = reproduce_from_config(cfg)
-    except MeshsegError as e:
-        print(f"error: {e}", file=sys.stderr)
-        sys.exit(ERROR_EXIT)
     if outcome.published:
         print(summary(outcome.table, *outcome.published))
     if outcome.failed:
-        sys.exit(1)
+        sys.exit(ERROR_EXIT)  # the failed sweeps are listed above
 
 
 def main(argv=None) -> None:

@@ -30,9 +30,10 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
+from meshseg.cli import command, usage
 from meshseg.config import hydra_scope, run_config
 from meshseg.data.io import check_output_folder
-from meshseg.errors import ConfigError, MeshsegError
+from meshseg.errors import ConfigError
 from meshseg.tracking import FoldRecord, RunKey, Tracker, check_store_exists, fold_identity
 
 log = logging.getLogger(__name__)
@@ -298,40 +299,36 @@ def _fill(tracker: Tracker, run_id: str, record: dict) -> None:
     tracker.client.set_terminated(run_id, "FINISHED", end_time=record["end_time"])
 
 
+@command
 def main(argv=None) -> None:
     """`python -m meshseg.results export|import [key=value ...]` (tracking.* and paths.* as for meshseg.run)."""
     import sys
 
     argv = sys.argv[1:] if argv is None else list(argv)
-    if not argv or argv[0] not in ("export", "import"):
-        if argv and argv[0] not in ("-h", "--help"):
-            print(f"error: unknown action {argv[0]!r}: choose export or import", file=sys.stderr)
-        print(__doc__.strip().split("\n\n")[1])
-        sys.exit(0 if argv and argv[0] in ("-h", "--help") else 2)
+    usage(__doc__.strip().split("\n\n")[1], argv)
+    if argv[0] not in ("export", "import"):
+        raise ConfigError(f"unknown action {argv[0]!r}: choose export or import")
     action, args = argv[0], argv[1:]
     own = {a.split("=", 1)[0]: a.split("=", 1)[1] for a in args if a.split("=", 1)[0] in ("out", "dir")}
     overrides = [a for a in args if a.split("=", 1)[0] not in ("out", "dir")]
-    try:
-        with hydra_scope():  # once for every record's config composed again (current_hash)
-            cfg = run_config(overrides)
-            root = Path(own.get("out", own.get("dir", "results")))
-            # the paths first: a mistyped one fails before any store is opened (or created empty)
-            if action == "export":
-                check_output_folder(root, "out")
-                check_store_exists(cfg.tracking.uri)
-            elif not root.is_dir():
-                raise ConfigError(f"dir={root}: no such folder of results records")
-            tracker = Tracker(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_dir)
-            if action == "export":
-                written, unchanged = export(tracker, root)
-                print(f"exported to {root}: {written} records written, {unchanged} unchanged")
-            else:
-                rep = import_records(tracker, root)
-                for path, why in rep.refused:
-                    print(f"refused {path}: {why}", file=sys.stderr)
-                print(f"import from {root} into {tracker.uri}: {rep.summary()}")
-    except MeshsegError as e:
-        sys.exit(f"error: {e}")
+    with hydra_scope():  # once for every record's config composed again (current_hash)
+        cfg = run_config(overrides)
+        root = Path(own.get("out", own.get("dir", "results")))
+        # the paths first: a mistyped one fails before any store is opened (or created empty)
+        if action == "export":
+            check_output_folder(root, "out")
+            check_store_exists(cfg.tracking.uri)
+        elif not root.is_dir():
+            raise ConfigError(f"dir={root}: no such folder of results records")
+        tracker = Tracker(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_dir)
+        if action == "export":
+            written, unchanged = export(tracker, root)
+            print(f"exported to {root}: {written} records written, {unchanged} unchanged")
+        else:
+            rep = import_records(tracker, root)
+            for path, why in rep.refused:
+                print(f"refused {path}: {why}", file=sys.stderr)
+            print(f"import from {root} into {tracker.uri}: {rep.summary()}")
 
 
 if __name__ == "__main__":

@@ -90,3 +90,31 @@ def test_help_lists_every_user_option_and_no_internal_budget():
     for group in groups:
         options = {p.stem for p in group.glob("*.yaml") if not p.stem.startswith("for_")}
         assert options <= set(re.findall(r"\w+", entries[group.name])), (group.name, entries[group.name])
+
+
+# --- one error contract: every command, one `error:` line, one exit status ---------------------------
+
+
+@pytest.mark.parametrize(
+    "command, message",
+    [
+        (["meshseg.run", "model.net.hidden=-1"], "error: model.net.hidden=-1 is not allowed"),
+        (["meshseg.run", "branches=7"], "error: branches=7 is not allowed"),
+        (["meshseg.report", "experiments/none.yaml"], "error: "),
+        (["meshseg.results", "exprot"], "error: unknown action 'exprot'"),
+        (["meshseg.predict", "run_id=x", "mesh=x.off", "out=x.npy", "budget=cpu"], "error: meshseg.predict takes"),
+        (["meshseg.features", "mesh=none.off"], "error: mesh=FILE needs out=FILE.npy"),
+        (["meshseg.data", "dataset=psb", "dataset.root=/nonexistent"], "error: /nonexistent: dataset root"),
+    ],
+)
+def test_every_command_ends_a_user_error_with_one_line_and_the_same_status(command, message, tmp_path):
+    """A user's mistake ends any command with `error: ...` alone on stderr and cli.ERROR_EXIT; a network
+    setting out of range is refused before any feature is computed or any store is made."""
+    from meshseg.cli import ERROR_EXIT
+
+    paths = [f"paths.{p}_dir={tmp_path}/{p}" for p in ("cache", "mlflow")]
+    extra = paths if command[0] in ("meshseg.run", "meshseg.features") else []
+    r = subprocess.run([sys.executable, "-m", *command, *extra], cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert r.returncode == ERROR_EXIT == 1, r.stderr[-2000:]
+    assert r.stderr.strip().startswith(message) and "Traceback" not in r.stderr, r.stderr[-2000:]
+    assert not (tmp_path / "cache").exists() and not (tmp_path / "mlflow").exists()  # no feature, no store

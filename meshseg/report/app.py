@@ -18,16 +18,13 @@ import hydra
 from omegaconf import DictConfig
 
 from meshseg import CONF_DIR
-from meshseg.errors import MeshsegError
+from meshseg.cli import usage, user_errors
 from meshseg.report.cells import Table
 from meshseg.report.claims import claims_from_config, summary_table
 from meshseg.report.claims_file import is_claims_file
 from meshseg.report.config import check_config, compose_config, hydra_argv
 from meshseg.report.manifest import load_manifest
 from meshseg.report.publish import build, publish, summary
-
-#: a user's mistake (bad manifest, bad setting, unreadable data): `error: <message>` and this exit status
-ERROR_EXIT = 2
 
 
 def report_from_config(cfg: DictConfig) -> tuple[Table, list[Path], str | None]:
@@ -48,14 +45,9 @@ def run_app(argv, app, config_name: str, doc: str) -> None:
     app `app` of conf/<config_name>.yaml (a user error printed as one `error:` line); any other exception
     propagates."""
     argv = list(argv)
-    if not argv or argv[0] in ("-h", "--help"):
-        print(doc.strip())
-        sys.exit(0 if argv else ERROR_EXIT)
-    try:
+    usage(doc, argv)
+    with user_errors():
         args = hydra_argv(argv, config_name)
-    except MeshsegError as e:
-        print(f"error: {e}", file=sys.stderr)
-        sys.exit(ERROR_EXIT)
     saved = sys.argv
     sys.argv = [saved[0], *args]  # hydra.main reads sys.argv
     try:
@@ -66,7 +58,7 @@ def run_app(argv, app, config_name: str, doc: str) -> None:
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="report")
 def _report_app(cfg: DictConfig) -> None:
-    try:
+    with user_errors():
         if is_claims_file(cfg.manifest):  # experiments/claims.yaml: the paper's claims judged on the runs
             check_config(cfg)
             claims, files = claims_from_config(cfg)
@@ -74,9 +66,6 @@ def _report_app(cfg: DictConfig) -> None:
             print("\n".join(f"wrote {f}" for f in files))
             return
         table, files, run_id = report_from_config(cfg)
-    except MeshsegError as e:
-        print(f"error: {e}", file=sys.stderr)
-        sys.exit(ERROR_EXIT)
     print(summary(table, files, run_id))
 
 
