@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from meshseg.data import synthetic
+from meshseg.data import sdf, synthetic
 from meshseg.data.archive import file_sha256, is_archive, resolve_root
 from meshseg.data.io import read_off, read_psb_label_names, read_psb_labels, read_seg
 from meshseg.data.mesh import Mesh, MeshDataError
@@ -249,7 +249,7 @@ class Synthetic(MeshDataset):
 
     @property
     def data_hash(self) -> str:
-        """Parameters plus the generator's source: changing either names new data."""
-        h = hashlib.sha256(Path(synthetic.__file__).read_bytes())
+        """Parameters plus the generator's source (its shapes' distances too): changing either names new data."""
+        h = hashlib.sha256(Path(synthetic.__file__).read_bytes() + Path(sdf.__file__).read_bytes())
         h.update(repr((self.categories, self.meshes_per_category, self.seed, self.min_faces, self.max_faces)).encode())
         return h.hexdigest()[:16]
