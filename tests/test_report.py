@@ -21,6 +21,7 @@ from conftest import PSB_ARCHIVE, REPO, SMOKE, require, smoke_env
 from mlflow import MlflowClient
 from test_manifests import PAPER_TABLES, paper_tex, parse_tabulars
 
+from meshseg.cli import ERROR_EXIT
 from meshseg.errors import ConfigError, ManifestError
 from meshseg.report import collect, load_manifest, report
 from meshseg.report.aggregate import Bootstrap, average_cell, average_row, bootstrap_ci, cell_rng, refinement_gain
@@ -287,13 +288,13 @@ def in_process(main, argv, tmp_path, monkeypatch):
     ],
 )
 def test_a_user_error_is_one_error_line(main, args, problem, tmp_path, monkeypatch, capsys):
-    assert in_process(main, ["experiments/absent.yaml", *args], tmp_path, monkeypatch) == 2
+    assert in_process(main, ["experiments/absent.yaml", *args], tmp_path, monkeypatch) == ERROR_EXIT
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: ") and len(err.splitlines()) == 1 and problem in err, err
 
 
 def test_a_run_override_or_a_column_that_does_not_compose_is_named(tmp_path, monkeypatch, capsys):
-    assert in_process(report_main, [str(SYNTH), "budgte=cpu"], tmp_path, monkeypatch) == 2
+    assert in_process(report_main, [str(SYNTH), "budgte=cpu"], tmp_path, monkeypatch) == ERROR_EXIT
     err = capsys.readouterr().err.strip()
     assert err.startswith(
         "error: run overrides budgte=cpu hydra/job_logging=none hydra/hydra_logging=none do not "
@@ -345,7 +346,7 @@ def test_a_damaged_run_is_a_user_error_naming_the_run(smoke_store, tmp_path, cac
         in_process(
             report_main, [str(SYNTH), *SMOKE, "report.log=false", f"report.out_dir={tmp_path}"], tmp_path, monkeypatch
         )
-        == 2
+        == ERROR_EXIT
     )
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1

@@ -243,7 +243,9 @@ def test_store_settings_are_checked_at_start(store):
         r = meshseg_run(*SMALL, f"tracking.uri={uri}", "fold=0", "category=cup")
         took = time.perf_counter() - t0
     assert r.returncode == 1 and f"error: tracking.uri={uri}: no MLflow server answers" in r.stderr, r.stderr[-2000:]
-    assert "Traceback" not in r.stderr and took < 60
+    # well under MLflow's own retries (minutes); the run builds its method (Lightning imported) before it opens
+    # the store, which takes a minute on a loaded 2-core machine
+    assert "Traceback" not in r.stderr and took < 120
 
 
 def test_run_identity_is_the_folds_meshes():
