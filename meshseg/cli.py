@@ -47,10 +47,10 @@ def command(fn: Callable) -> Callable:
     return wrapper
 
 
-def usage(doc: str, argv: list[str]) -> bool:
-    """Print a command's usage when asked (-h, --help: exit 0) or when given nothing (a usage error)."""
+def usage(doc: str, argv: list[str]) -> None:
+    """Print a command's usage and end it when asked (-h, --help: exit 0) or when given nothing (a usage error)."""
     if argv and argv[0] not in ("-h", "--help"):
-        return False
+        return
     print(doc.strip())
     sys.exit(0 if argv else ERROR_EXIT)
 

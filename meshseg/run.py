@@ -64,7 +64,11 @@ def run(cfg: DictConfig) -> FoldOutcome:
             if run_id is None:
                 return job.skipped(holder)
         params = FoldRecord.params(job.config)
-        with tracker.run(key.name, tags, params, run_id, files=job_files, system_metrics=t["system_metrics"]) as run_id:
+        with (
+            tracker.run(key.name, tags, params, run_id) as run_id,
+            tracker.system_metrics(run_id, t["system_metrics"]),
+            tracker.files_at_end(run_id, job_files),
+        ):
             fold = job.fold
             log.info(
                 "run: %s (config %s, %d train / %d test meshes)",

@@ -127,18 +127,15 @@ class Tracker:
         )
 
     @contextmanager
-    def run(self, name: str, tags: dict, params: dict, run_id: str | None = None, **extras) -> Iterator[str]:
+    def run(self, name: str, tags: dict, params: dict, run_id: str | None = None) -> Iterator[str]:
         """Yield a run's id (`run_id`, claimed before, or a new run) and end it FINISHED, FAILED (error
-        text tagged) or KILLED. A claimed run's heartbeat is kept fresh meanwhile. `extras`: `files` (a
-        callable giving paths stored with the run however it ends, e.g. the job's log) and `system_metrics`
-        (MLflow's CPU and memory samples while it runs)."""
+        text tagged) or KILLED. A claimed run's heartbeat is kept fresh meanwhile."""
         run_id = run_id or self._create(name, tags).info.run_id
         beat = None
         try:
             beat = Heartbeat(self.client, run_id) if self._leased(run_id) else None
             self.log_params(run_id, params)
-            with self._system_metrics(run_id, extras.get("system_metrics")), self._files_at_end(run_id, extras):
-                yield run_id
+            yield run_id
         except KeyboardInterrupt:
             self._end(beat, run_id, "KILLED")
             raise
@@ -151,18 +148,19 @@ class Tracker:
             self._end(beat, run_id, "FINISHED")
 
     @contextmanager
-    def _files_at_end(self, run_id: str, extras: dict) -> Iterator[None]:
+    def files_at_end(self, run_id: str, files) -> Iterator[None]:
+        """`files()` (paths, e.g. the job's log) stored with the run however the block ends."""
         try:
             yield
         finally:  # also (especially) for a run that failed
             try:
-                if extras.get("files"):
-                    self.log_files(run_id, extras["files"]())
+                self.log_files(run_id, files())
             except Exception as e:  # never hides what ended the run
                 log.warning("run %s: its files were not stored: %s", run_id, str(e)[:300])
 
     @contextmanager
-    def _system_metrics(self, run_id: str, on: bool | None) -> Iterator[None]:
+    def system_metrics(self, run_id: str, on: bool) -> Iterator[None]:
+        """MLflow's CPU, memory and GPU samples as the run's system metrics while the block runs, when `on`."""
         if not on:
             yield
             return
