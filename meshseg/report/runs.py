@@ -2,17 +2,22 @@
 
 A table finds its runs by the config hash `meshseg.run` gives them (the newest FINISHED run of a hash wins),
 so only runs made with exactly a cell's configuration (budget included) count. Each run's per-mesh table
-(FoldRecord.PER_MESH) gives the rows; the run's wall time and counts ride along on each of them."""
+(FoldRecord.PER_MESH) gives the rows; the run's wall time and counts ride along on each of them. The same
+frame can be read from shipped results records (`results/`, meshseg.results) without a store."""
 
 from __future__ import annotations
 
 import csv
+import logging
 import tempfile
+from pathlib import Path
 
 import pandas as pd
 
 from meshseg.errors import TrackingError
 from meshseg.tracking import FoldRecord, search_runs, store_uri
+
+log = logging.getLogger(__name__)
 
 #: count params (`n_*`) of a fold run that learning curves read (n_train_distinct: only runs made since it exists)
 RUN_COUNTS = ("n_train_samples", "n_train_distinct", "n_epochs")
@@ -69,7 +74,48 @@ def mesh_table(uri: str, experiment: str, wanted: pd.DataFrame) -> pd.DataFrame:
     by_hash = finished_by_hash(uri, experiment)
     found = [by_hash[h] for h in dict.fromkeys(wanted["config_hash"]) if h in by_hash]
     client = MlflowClient(tracking_uri=store_uri(uri)) if found else None
-    runs = pd.DataFrame([row for run in found for row in _run_rows(client, run)], columns=list(RUN_COLUMNS))
+    return _in_order(wanted, [row for run in found for row in _run_rows(client, run)])
+
+
+def records_mesh_table(root, wanted: pd.DataFrame) -> pd.DataFrame:
+    """mesh_table's frame, read from the results records under `root` (e.g. results/) instead of a store: a
+    record is its run exported under the run's config hash, so the wanted runs are found without importing
+    the records into MLflow first (a second, where an import takes minutes). The newest record of a hash wins;
+    one that `meshseg.results import` would refuse is no run, with a warning, as it is in the report."""
+    from meshseg.results import check_record, load_records
+
+    hashes = set(wanted["config_hash"])
+    by_hash: dict[str, dict] = {}
+    for path, record in load_records(Path(root)):
+        h = record["config_hash"]
+        if h not in hashes:
+            continue
+        why = check_record(record)
+        if why is not None:
+            log.warning("not read: %s: %s", path, why)
+        elif h not in by_hash or (record["end_time"] or 0) > (by_hash[h]["end_time"] or 0):
+            by_hash[h] = {**record, "path": str(path)}
+    return _in_order(wanted, [row for record in by_hash.values() for row in _record_rows(record)])
+
+
+def _record_rows(record: dict) -> list[dict]:
+    """_run_rows of a record (its file's path stands for the run id, which a record does not carry)."""
+    start, end, counts = record["start_time"], record["end_time"], record.get("counts", {})
+    common = {
+        "config_hash": record["config_hash"],
+        "run_id": record["path"],
+        "seconds": (end - start) / 1000 if end else float("nan"),
+        "counts": {k: int(counts[k]) for k in RUN_COUNTS if k in counts},
+    }
+    return [
+        {**common, "line": i, "mesh": row["mesh"], **{m: 100.0 * float(row[m]) for m in FoldRecord.MESH_METRICS}}
+        for i, row in enumerate(record["per_mesh"])
+    ]
+
+
+def _in_order(wanted: pd.DataFrame, rows: list[dict]) -> pd.DataFrame:
+    """The runs' rows joined to the wanted fold runs they are, in `wanted`'s order, then each run's mesh order."""
+    runs = pd.DataFrame(rows, columns=list(RUN_COLUMNS))
     order = wanted.assign(order=range(len(wanted)))
     meshes = order.merge(runs, on="config_hash", how="inner")
     return meshes.sort_values(["order", "line"], kind="stable").drop(columns=["order", "line"]).reset_index(drop=True)
