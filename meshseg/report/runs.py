@@ -42,10 +42,7 @@ def _mesh_accuracies(client, run) -> list[tuple[str, dict[str, float]]]:
         with tempfile.TemporaryDirectory() as tmp:
             path = client.download_artifacts(run.info.run_id, FoldRecord.PER_MESH, tmp)
             with open(path, newline="") as f:
-                return [
-                    (row["mesh"], {m: 100.0 * float(row[m]) for m in FoldRecord.MESH_METRICS})
-                    for row in csv.DictReader(f)
-                ]
+                return [(row["mesh"], _percent(row)) for row in csv.DictReader(f)]
     except Exception as e:  # a FINISHED run without a readable table is damage in the store, not a missing fold
         raise TrackingError(
             f"run {run.info.run_id} ({run.info.run_name}): cannot read {'/'.join(FoldRecord.MESH_METRICS)} from "
@@ -55,14 +52,21 @@ def _mesh_accuracies(client, run) -> list[tuple[str, dict[str, float]]]:
 
 def _run_rows(client, run) -> list[dict]:
     """One row per test mesh of the run: its accuracies, the run's identity, wall time and counts."""
-    info, params = run.info, run.data.params
-    common = {
-        "config_hash": run.data.tags["config_hash"],
-        "run_id": info.run_id,
-        "seconds": (info.end_time - info.start_time) / 1000 if info.end_time else float("nan"),
-        "counts": {k: int(params[k]) for k in RUN_COUNTS if k in params},
-    }
+    info = run.info
+    common = _run_columns(run.data.tags["config_hash"], info.run_id, info.start_time, info.end_time, run.data.params)
     return [{**common, "line": i, "mesh": m, **accs} for i, (m, accs) in enumerate(_mesh_accuracies(client, run))]
+
+
+def _run_columns(config_hash: str, run_id: str, start: int, end: int | None, counts: dict) -> dict:
+    """What a run adds to each of its meshes' rows: identity, wall time (s; NaN while it has no end), RUN_COUNTS."""
+    seconds = (end - start) / 1000 if end else float("nan")
+    kept = {k: int(counts[k]) for k in RUN_COUNTS if k in counts}
+    return {"config_hash": config_hash, "run_id": run_id, "seconds": seconds, "counts": kept}
+
+
+def _percent(row: dict) -> dict[str, float]:
+    """A per-mesh row's FoldRecord.MESH_METRICS (fractions) in %."""
+    return {m: 100.0 * float(row[m]) for m in FoldRecord.MESH_METRICS}
 
 
 def mesh_table(uri: str, experiment: str, wanted: pd.DataFrame) -> pd.DataFrame:
@@ -100,17 +104,9 @@ def records_mesh_table(root, wanted: pd.DataFrame) -> pd.DataFrame:
 
 def _record_rows(record: dict) -> list[dict]:
     """_run_rows of a record (its file's path stands for the run id, which a record does not carry)."""
-    start, end, counts = record["start_time"], record["end_time"], record.get("counts", {})
-    common = {
-        "config_hash": record["config_hash"],
-        "run_id": record["path"],
-        "seconds": (end - start) / 1000 if end else float("nan"),
-        "counts": {k: int(counts[k]) for k in RUN_COUNTS if k in counts},
-    }
-    return [
-        {**common, "line": i, "mesh": row["mesh"], **{m: 100.0 * float(row[m]) for m in FoldRecord.MESH_METRICS}}
-        for i, row in enumerate(record["per_mesh"])
-    ]
+    r = record
+    common = _run_columns(r["config_hash"], r["path"], r["start_time"], r["end_time"], r.get("counts", {}))
+    return [{**common, "line": i, "mesh": row["mesh"], **_percent(row)} for i, row in enumerate(r["per_mesh"])]
 
 
 def _in_order(wanted: pd.DataFrame, rows: list[dict]) -> pd.DataFrame:
