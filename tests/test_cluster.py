@@ -22,6 +22,8 @@ import yaml
 from conftest import REPO
 from mlflow import MlflowClient
 
+from meshseg.tracking import is_fold_run
+
 pytestmark = pytest.mark.cluster
 
 SCRIPT = REPO / "scripts/local_cluster.sh"
@@ -77,7 +79,7 @@ def server_runs(env, status=None, **tags):
     if exp is None:
         return []
     filt = " and ".join(f"tags.{k} = '{v}'" for k, v in tags.items())
-    found = client.search_runs([exp.experiment_id], filt)
+    found = [r for r in client.search_runs([exp.experiment_id], filt) if is_fold_run(r)]  # no sweep's parent
     return [r for r in found if status is None or r.info.status == status]
 
 
