@@ -1,6 +1,7 @@
 """A fold's model as an MLflow model: a `pyfunc` that labels a mesh given as vertices and faces.
 
     import mlflow
+    mlflow.set_tracking_uri("sqlite:///mlruns/mlflow.db")  # the runs' store (tracking.uri)
     model = mlflow.pyfunc.load_model("runs:/<run id>/model")
     out = model.predict({"vertices": V, "faces": F})  # V float64 (n, 3); F int64 (m, 3), 0-based
     out["label_name"]  # one row per face: the label meshseg.predict writes; "label" its index, "label_raw" unrefined
