@@ -183,7 +183,10 @@ def test_config_hash_ignores_paths_and_sees_knobs():
 # --- runs ------------------------------------------------------------------------------------------
 
 
-def test_one_run_follows_the_tracking_contract_and_reruns_skip(store):
+def test_one_run_follows_the_tracking_contract_and_reruns_skip(store, tmp_path):
+    from meshseg.predict import download_model
+    from meshseg.tracking import Tracker
+
     r = meshseg_run(*SMALL, "category=cup", "fold=1")
     assert r.returncode == 0, r.stderr[-3000:]
     (run,) = runs(store)
@@ -236,7 +239,8 @@ def test_one_run_follows_the_tracking_contract_and_reruns_skip(store):
         "renders",
         "run.log",
     ]
-    model = Path(client.download_artifacts(run.info.run_id, "model"))  # its MLflow logged model (meshseg.pyfunc)
+    # the fold's model: its MLflow logged model (meshseg.pyfunc), the FoldModel's files inside
+    model = download_model(Tracker(f"sqlite:///{store}/mlflow.db", "meshseg"), run, str(tmp_path / "m"))
     assert {"MLmodel", "input_example.json"} <= {p.name for p in model.iterdir()}
     assert sorted(p.name for p in (model / "artifacts/fold_model").iterdir()) == ["model.pt", "model.yaml"]
     assert "category=cup" in (local / "overrides.yaml").read_text()
