@@ -39,7 +39,10 @@ def sweep(tmp_path, cache_dir, *overrides):
     return r.stdout + r.stderr
 
 
-def test_a_sweep_of_two_categories_is_one_parent_with_its_folds_nested_and_a_rerun_adds_none(tmp_path, cache_dir):
+def test_a_sweep_of_two_categories_is_one_parent_with_its_folds_nested_and_a_rerun_adds_none(
+    smoke_store, tmp_path, cache_dir
+):
+    # (the smoke store is made first: these folds' features are then in the session's cache)
     # joblib's worker processes make the fold runs: the parent's id reaches them through the environment
     launcher = ["hydra/launcher=joblib", "hydra.launcher.n_jobs=2", "trainer.threads=1"]
     sweep(tmp_path, cache_dir, "category=cup,table", "fold=0", *launcher)
