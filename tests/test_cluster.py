@@ -115,6 +115,13 @@ def test_sweeps_on_slurm_log_to_the_server_resume_and_survive_scancel(cluster, t
     }
     assert all(d.data.tags.get("slurm_job") for d in done)  # each ran as a SLURM job, and says which
     assert len({d.data.tags["slurm_job"] for d in done}) == 10
+    # the sweep is one parent run, made where the sweep was expanded; each job's run is nested under it and
+    # keeps its model as a logged model on the server
+    exp_id = client.get_experiment_by_name("meshseg").experiment_id
+    (parent,) = [r for r in client.search_runs([exp_id]) if not is_fold_run(r)]
+    assert {d.data.tags["mlflow.parentRunId"] for d in done} == {parent.info.run_id}
+    models = client.search_logged_models([exp_id])
+    assert sorted(m.source_run_id for m in models) == sorted(d.info.run_id for d in done)
     for d in done:
         rows = list(csv.DictReader(open(client.download_artifacts(d.info.run_id, "per_mesh.csv", str(tmp_path)))))
         assert len(rows) == 1 and float(rows[0]["acc"]) == pytest.approx(d.data.metrics["test/acc"])
