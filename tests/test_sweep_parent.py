@@ -7,6 +7,7 @@ import os
 import subprocess
 import sys
 import threading
+import time
 
 import pytest
 from conftest import REPO
@@ -90,22 +91,44 @@ def test_the_smoke_stores_sweeps_are_parents_the_report_and_export_ignore(smoke_
 
 
 def test_sweeps_of_one_study_started_at_once_agree_on_one_parent(tmp_path):
+    """Four sweeps of one identity open their parent at once, five times over (one key each): every one gets the
+    same kept parent, and no other parent survives."""
     trackers = [Tracker(f"sqlite:///{tmp_path}/mlflow.db", "meshseg") for _ in range(4)]
-    start, got = threading.Barrier(len(trackers)), []
+    for trial in range(5):
+        key, start, got, errors = f"k{trial}", threading.Barrier(len(trackers)), [], []
 
-    def one(tracker):
-        start.wait()
-        got.append(open_parent(tracker, "k1", "sweep · a=1", {"sweep_overrides": "[]"}, {"a": "1"}))
+        def one(tracker, key=key, start=start, got=got, errors=errors):
+            start.wait()
+            try:
+                got.append(open_parent(tracker, key, "sweep · a=1", {"sweep_overrides": "[]"}, {"a": "1"}))
+            except Exception as e:  # a thread's exception would otherwise only be a warning
+                errors.append(repr(e))
 
-    threads = [threading.Thread(target=one, args=(t,)) for t in trackers]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join(timeout=120)
-    (parent,) = [r for r in every_run(tmp_path) if r.data.tags.get(SWEEP_KEY) == "k1"]
-    assert got == [parent.info.run_id] * 4 and parent.data.params == {"a": "1"}
+        threads = [threading.Thread(target=one, args=(t,)) for t in trackers]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(timeout=120)
+        assert errors == []
+        (parent,) = [r for r in every_run(tmp_path) if r.data.tags.get(SWEEP_KEY) == key]
+        assert got == [parent.info.run_id] * 4 and parent.data.params == {"a": "1"}, trial
     # another sweep is another parent
-    assert open_parent(trackers[0], "k2", "sweep · a=2", {}, {"a": "2"}) != parent.info.run_id
+    assert open_parent(trackers[0], "k9", "sweep · a=2", {}, {"a": "2"}) != parent.info.run_id
+
+
+def test_a_parent_left_undecided_by_a_dead_sweep_is_passed_over(tmp_path):
+    """A parent made but never kept (its sweep died at that moment) blocks nobody once PENDING_S old."""
+    from meshseg.tracking import sweeps
+
+    tracker = Tracker(f"sqlite:///{tmp_path}/mlflow.db", "meshseg")
+    orphan = tracker._create("sweep · a=1", {SWEEP_KEY: "k"}).info.run_id
+    sweeps.PENDING_S, pending = 0.5, sweeps.PENDING_S
+    try:
+        time.sleep(0.6)
+        kept = open_parent(tracker, "k", "sweep · a=1", {}, {"a": "1"})
+    finally:
+        sweeps.PENDING_S = pending
+    assert kept != orphan and open_parent(tracker, "k", "sweep · a=1", {}, {"a": "1"}) == kept
 
 
 def test_a_sweeps_identity_is_its_settings_not_how_or_where_it_runs():

@@ -20,7 +20,11 @@ from meshseg.tracking.store import all_runs, retry
 log = logging.getLogger(__name__)
 
 #: attempts to make a parent that may meet parents made at the same moment
-PARENT_ATTEMPTS = 20
+PARENT_ATTEMPTS = 40
+#: the tag of a parent its maker kept (it saw no other): the only parents taken, as only they are never deleted
+SWEEP_KEPT = "sweep_kept"
+#: seconds after which a parent nobody kept is passed over (its maker died between making and deciding)
+PENDING_S = 60
 
 
 def sweep_key(overrides: list[str], exclude=()) -> tuple[str, list[str]]:
@@ -38,23 +42,38 @@ def sweep_key(overrides: list[str], exclude=()) -> tuple[str, list[str]]:
 
 
 def parents(tracker, key: str) -> list:
-    """The parent runs of sweep `key` in the tracker's experiment (one, but for a moment when two are made)."""
+    """The parent runs of sweep `key` in the tracker's experiment, kept or still being decided on (one, but for a
+    moment when two are made)."""
     return all_runs(tracker.client, tracker.experiment_id, f"tags.{SWEEP_KEY} = '{key}'")
 
 
+def _kept(run) -> bool:
+    return run.data.tags.get(SWEEP_KEPT) == "true"
+
+
+def _live(run) -> bool:
+    """A parent kept, or one whose maker may still be deciding (one left undecided by a process that died is
+    passed over once it is PENDING_S old)."""
+    return _kept(run) or time.time() * 1000 - run.info.start_time < PENDING_S * 1000
+
+
 def open_parent(tracker, key: str, name: str, tags: dict, params: dict) -> str:
-    """The id of sweep `key`'s parent run, RUNNING: the one a run of this sweep made before (its `tags` updated), or
-    a new one named `name` with `tags` and `params`. No lock is needed: a new parent is kept only if, once it is
-    stored, no other parent of the key is seen (of two made at once the later sees the earlier); parents that saw
-    each other are deleted and made again after a random pause."""
+    """The id of sweep `key`'s parent run, RUNNING: the one a run of this sweep kept before (its `tags` updated), or
+    a new one named `name` with `tags` and `params`. No lock is needed: a new parent is kept (tagged SWEEP_KEPT)
+    only if, once it is stored, no other live parent of the key is seen (of two made at once the later sees the
+    earlier); parents that saw each other are deleted by their makers and made again after a random pause. A kept
+    parent is never deleted, so only kept ones are taken; one still being decided on is waited for."""
     for attempt in range(PARENT_ATTEMPTS):
-        if found := parents(tracker, key):
-            return _resume(tracker, min(found, key=lambda r: (r.info.start_time, r.info.run_id)).info.run_id, tags)
-        mine = tracker._create(name, {**tags, SWEEP_KEY: key}).info.run_id
-        if not [r for r in parents(tracker, key) if r.info.run_id != mine]:
-            tracker.log_params(mine, params)
-            return mine
-        tracker.client.delete_run(mine)
+        found = [r for r in parents(tracker, key) if _live(r)]
+        if kept := [r for r in found if _kept(r)]:
+            return _resume(tracker, min(kept, key=lambda r: (r.info.start_time, r.info.run_id)).info.run_id, tags)
+        if not found:
+            mine = tracker._create(name, {**tags, SWEEP_KEY: key}).info.run_id
+            if not [r for r in parents(tracker, key) if r.info.run_id != mine and _live(r)]:
+                retry(lambda mine=mine: tracker.client.set_tag(mine, SWEEP_KEPT, "true"), "keep sweep")
+                tracker.log_params(mine, params)
+                return mine
+            tracker.client.delete_run(mine)
         time.sleep(random.uniform(0.05, 0.25) * min(attempt + 1, 4))
     raise TrackingError(f"sweep {key}: {PARENT_ATTEMPTS} attempts in a row met other new parents; run it again")
 
