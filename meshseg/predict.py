@@ -2,12 +2,15 @@
 
     python -m meshseg.predict run_id=<id> mesh=my.off out=my_labels.txt [render=my.png] [tracking.uri=...]
 
-Every fold run logs `model/` (DESIGN "Tracking contract"): `model.pt`, the fitted fitter with the
+Every fold run logs its model (DESIGN "Tracking contract"): `model.pt`, the fitted fitter with the
 standardiser of its inputs and what turns a mesh into those inputs (feature set, branches, ring
-adjacency, refinement, label names), and `model.yaml`, the same settings readable. Predicting runs the
-run's own path: features (cached by the mesh's content hash), X^1..X^B, standardised, the model's
-probabilities, the refinement. `out` ending `.seg` writes one label per face (COSEG's integer label where
-the labels are integers, else the label's index); any other name writes L-PSB's `_labels.txt` format.
+adjacency, refinement, label names), and `model.yaml`, the same settings readable. They sit in the run's
+MLflow logged model `model` (meshseg.pyfunc, which `mlflow.pyfunc.load_model` loads), as its
+artifacts/fold_model/; runs made before logged models kept them as their `model/` artifact, and both are
+read here. Predicting runs the run's own path: features (cached by the mesh's content hash), X^1..X^B,
+standardised, the model's probabilities, the refinement. `out` ending `.seg` writes one label per face
+(COSEG's integer label where the labels are integers, else the label's index); any other name writes
+L-PSB's `_labels.txt` format.
 `model.pt` is a pickle: load models from stores you trust.
 """
 
@@ -28,8 +31,6 @@ from meshseg.errors import ConfigError, MeshsegError, TrackingError
 
 log = logging.getLogger("meshseg.predict")
 
-ARTIFACT = "model"
-
 
 @dataclasses.dataclass
 class FoldModel:
@@ -43,6 +44,17 @@ class FoldModel:
     about: dict  # where it came from: run name, dataset, category, fold, config hash, git sha
 
     FILE, ABOUT = "model.pt", "model.yaml"
+    #: the folder of FILE and ABOUT inside the run's logged model (under its artifacts/)
+    FOLDER = "fold_model"
+
+    @classmethod
+    def find(cls, folder: Path) -> Path | None:
+        """Where a run's downloaded model keeps FILE: the logged model's artifacts/fold_model/, or the `model/`
+        artifact itself (a run made before logged models); None when neither has it."""
+        for where in (Path(folder) / "artifacts" / cls.FOLDER, Path(folder)):
+            if (where / cls.FILE).is_file():
+                return where
+        return None
 
     def save(self, folder: Path) -> None:
         import torch
@@ -111,9 +123,27 @@ def write_labels(path: str, labels: np.ndarray, names) -> None:
         write_psb_labels(path, labels, names)
 
 
+def download_model(tracker, run, dst: str) -> Path:
+    """The run's model downloaded into `dst`: its logged model FoldRecord.MODEL (meshseg.pyfunc) or, for a run made
+    before logged models, its `model/` artifact. (MLflow resolves the logged model behind `runs:/<id>/model` in the
+    store of its global tracking uri, not the tracker's: it is looked up here by the run's outputs instead.)"""
+    from mlflow.artifacts import download_artifacts
+
+    from meshseg.tracking import FoldRecord
+
+    for output in run.outputs.model_outputs if run.outputs else []:
+        model = tracker.client.get_logged_model(output.model_id)
+        if model.name == FoldRecord.MODEL:
+            uri = model.artifact_location
+            return Path(download_artifacts(artifact_uri=uri, dst_path=dst, tracking_uri=tracker.uri))
+    return Path(tracker.client.download_artifacts(run.info.run_id, FoldRecord.MODEL, dst))
+
+
 def load_run_model(tracker, run_id: str) -> tuple[FoldModel, object]:
     """The model a run logged, and the run; an unknown run or one without a model is one error."""
     from mlflow.exceptions import MlflowException
+
+    from meshseg.tracking import FoldRecord
 
     try:
         run = tracker.client.get_run(run_id)
@@ -122,19 +152,19 @@ def load_run_model(tracker, run_id: str) -> tuple[FoldModel, object]:
     os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
     with tempfile.TemporaryDirectory() as tmp:
         try:
-            folder = tracker.client.download_artifacts(run_id, ARTIFACT, tmp)
+            folder = FoldModel.find(download_model(tracker, run, tmp))
         except (MlflowException, OSError):
             folder = None
-        if folder is None or not (Path(folder) / FoldModel.FILE).is_file():
+        if folder is None:
             raise TrackingError(
-                f"run_id={run_id} ({run.info.run_name}) has no {ARTIFACT}/ artifact: it ran with "
+                f"run_id={run_id} ({run.info.run_name}) has no {FoldRecord.MODEL}: it ran with "
                 "tracking.log_model=false, was imported from results/, or ran before runs kept their models"
             )
         try:
-            return FoldModel.load(Path(folder)), run
+            return FoldModel.load(folder), run
         except MeshsegError as e:  # name the run, not the temporary download it came through
             why = str(e).split(": ", 1)[-1]
-            raise TrackingError(f"run_id={run_id} ({run.info.run_name}): its {ARTIFACT}/ artifact {why}") from None
+            raise TrackingError(f"run_id={run_id} ({run.info.run_name}): its {FoldRecord.MODEL} {why}") from None
 
 
 def predict(cfg) -> dict:

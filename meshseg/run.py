@@ -40,6 +40,7 @@ def run(cfg: DictConfig) -> FoldOutcome:
     whose config already has a FINISHED run (or a live one) is skipped; its run ends FINISHED, FAILED or KILLED."""
     from meshseg.metrics import mesh_scores
     from meshseg.predict import FoldModel
+    from meshseg.pyfunc import log_fold_model
     from meshseg.tracking import FoldRecord, Lease, Tracker, system_tags
     from meshseg.training.data import FeatureSource
     from meshseg.training.fit import fit_predict
@@ -111,20 +112,22 @@ def run(cfg: DictConfig) -> FoldOutcome:
             }
             # record (the timings last, so that they include the recording itself)
             log.info("logging predictions%s", ", the model" if t["log_model"] else "")
+            model_id = None
             with timings("log"):
                 tracker.log_params(run_id, {f"n_{k}": v for k, v in preds.counts.items()})
                 arrays = FoldRecord.predictions(preds.meshes, preds.probabilities, raw, labels)
                 tracker.log_fold(run_id, OmegaConf.to_yaml(job.config), rows, arrays)
-                if t["log_model"]:
+                if t["log_model"]:  # an MLflow logged model (meshseg.pyfunc), which meshseg.predict reads too
                     about = {"run_id": run_id, **{k: job.tags[k] for k in ABOUT_MODEL}}
                     label_names = job.dataset.label_names(key.category)
-                    tracker.log_model(run_id, FoldModel.of_fold(job.config, preds, label_names, about))
+                    model = FoldModel.of_fold(job.config, preds, label_names, about)
+                    model_id = log_fold_model(tracker, run_id, model, job.cache_dir)
             if renders := int(t["renders"] or 0):
                 log.info("rendering %d test meshes", min(renders, len(preds.meshes)))
                 with timings("pictures"):
                     tracker.log_pictures(run_id, preds.meshes, labels, rows, renders)
             metrics.update({f"time/{k}_s": v for k, v in timings.items()})
-            tracker.log_metrics(run_id, metrics)
+            tracker.log_metrics(run_id, metrics, model_id)  # the model's metrics too (the UI's Models tab)
     if job.checkpoints is not None:  # the fold is recorded: nothing left to resume
         shutil.rmtree(job.checkpoints, ignore_errors=True)
     acc = float(metrics[FoldRecord.ACC])

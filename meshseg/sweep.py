@@ -1,12 +1,15 @@
 """A `-m` sweep's side of a run: which (category, fold) cells a sweep expands to (for meshseg's sweeper,
-hydra_plugins/meshseg_sweeper), a job's `job k/N` progress, and what a job knows of the Hydra app it runs
-in (its overrides, its sweep, its log files)."""
+hydra_plugins/meshseg_sweeper), the sweep's parent run and its closing summary, a job's `job k/N` progress,
+and what a job knows of the Hydra app it runs in (its overrides, its sweep and parent run, its log files)."""
 
 from __future__ import annotations
 
+import json
 import logging
+import math
 import os
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
@@ -19,6 +22,10 @@ log = logging.getLogger("meshseg.run")
 
 #: set by meshseg's sweeper for its jobs: how many there are and when the sweep began (time.time())
 SWEEP_JOBS, SWEEP_START = "MESHSEG_SWEEP_JOBS", "MESHSEG_SWEEP_START"
+#: set by meshseg's sweeper for its jobs: the sweep's parent run, which their fold runs are nested under
+SWEEP_PARENT = "MESHSEG_SWEEP_PARENT"
+#: MLflow's tag of a nested run: its parent run's id
+PARENT_RUN_ID = "mlflow.parentRunId"
 #: the jobs this process ran to the end (skipped ones not counted) and their seconds: the pace of `job k/N`
 _PACE = {"jobs": 0, "seconds": 0.0}
 
@@ -66,10 +73,98 @@ def job_done(seconds: float) -> None:
 
 
 def sweep_tag() -> dict[str, str]:
-    """{"sweep_id": the sweep's folder name} for a job of a `-m` sweep, so its runs can be found together."""
+    """For a job of a `-m` sweep, {"sweep_id": the sweep's folder name} (its runs found together) and its parent run
+    as MLflow's parent tag (its runs nested under the parent's row in the UI); {} for a single run."""
     from hydra.core.hydra_config import HydraConfig
 
-    return {"sweep_id": Path(HydraConfig.get().sweep.dir).name} if in_sweep() else {}
+    if not in_sweep():
+        return {}
+    parent = os.environ.get(SWEEP_PARENT)
+    return {"sweep_id": Path(HydraConfig.get().sweep.dir).name, **({PARENT_RUN_ID: parent} if parent else {})}
+
+
+@dataclass
+class SweepSummary:
+    """What a sweep did: jobs ran, skipped (their configs had FINISHED runs) and failed, and the test accuracy of
+    each category's folds (a skipped fold's from its FINISHED run)."""
+
+    ran: int
+    skipped: int
+    failed: int
+    accuracies: dict[str, list[float]]
+    seconds: float
+
+    @classmethod
+    def of(cls, outcomes: list, failed: int, seconds: float) -> SweepSummary:
+        """From the return values of the jobs that completed (meshseg.run's FoldOutcome, as dicts)."""
+        done = [d for d in outcomes if isinstance(d, dict) and "acc" in d]
+        ran = sum(not d["skipped"] for d in done)
+        accuracies: dict[str, list[float]] = {}
+        for d in done:
+            if not math.isnan(d["acc"]):  # a fold another live run holds has none yet
+                accuracies.setdefault(d["category"], []).append(d["acc"])
+        return cls(ran, len(done) - ran, failed, accuracies, seconds)
+
+    def lines(self) -> str:
+        """The sweep's closing lines."""
+        s = self
+        lines = [f"sweep: {s.ran} ran, {s.skipped} skipped, {s.failed} failed in {s.seconds / 60:.1f} min"]
+        if s.accuracies:
+            means = [f"{c} {100 * sum(a) / len(a):.2f} ({len(a)} folds)" for c, a in s.accuracies.items()]
+            lines.append("sweep: mean test/acc by category (fold means, %): " + ", ".join(means))
+        return "\n".join(lines)
+
+    def metrics(self) -> dict[str, float]:
+        """The parent run's metrics: the counts, the time, and test/acc/<category>, the mean of its folds'."""
+        s = self
+        counts = {"sweep/ran": s.ran, "sweep/skipped": s.skipped, "sweep/failed": s.failed, "time/sweep_s": s.seconds}
+        return {**counts, **{f"test/acc/{c}": sum(a) / len(a) for c, a in s.accuracies.items()}}
+
+
+@dataclass
+class SweepParent:
+    """A sweep's parent run (meshseg.tracking.sweeps), made or found by the process that expands the sweep; its id
+    goes to the jobs through SWEEP_PARENT (launchers pass the environment on: joblib's workers, SLURM's jobs)."""
+
+    tracker: object  # meshseg.tracking.Tracker
+    run_id: str
+    command: str
+    closed: bool = False
+
+    @classmethod
+    def open(cls, trackings: list, overrides: list[str]) -> SweepParent | None:
+        """The parent of the sweep of `overrides` (the command line's, the sweeper's params with them) in the store
+        its jobs' `trackings` (their tracking configs) name; None when they name several (a swept tracking.uri)."""
+        from meshseg.tracking import Tracker, git_sha, open_parent, sweep_key, system_tags
+
+        stores = {(t.uri, t.experiment, t.artifact_dir) for t in trackings}
+        if len(stores) != 1:
+            log.warning("sweep: its jobs log to %d stores or experiments: no parent run", len(stores))
+            return None
+        t = trackings[0]
+        tracker = Tracker(t.uri, t.experiment, t.artifact_dir)
+        key, settings = sweep_key(overrides, t.hash_exclude)
+        command = " ".join(["python -m meshseg.run -m", *overrides])
+        tags = {**system_tags("meshseg.run", command, git_sha()), "sweep_overrides": json.dumps(settings)}
+        params = {k.lstrip("+~"): v for k, _, v in (o.partition("=") for o in settings)}
+        name = f"sweep · {' '.join(settings) or 'every category and fold'}"
+        run_id = open_parent(tracker, key, name[:250], tags, params)
+        os.environ[SWEEP_PARENT] = run_id
+        log.info("sweep %s: parent run %s", key, tracker.run_url(run_id))
+        return cls(tracker, run_id, command)
+
+    def close(self, summary: SweepSummary | None, status: str) -> None:
+        """End the parent `status`, with the sweep's summary as its metrics and in its description (once: a sweep
+        that ended with failed jobs exits through the sweeper's handler of interrupts)."""
+        from meshseg.tracking import close_parent
+
+        if self.closed:
+            return
+        self.closed = True
+        lines = summary.lines().splitlines() if summary else []
+        note = "\n\n".join([f"`{self.command}`", *lines])  # markdown: a paragraph each
+        metrics = summary.metrics() if summary else {}
+        close_parent(self.tracker, self.run_id, metrics, {"mlflow.note.content": note}, status)
 
 
 def in_sweep() -> bool:

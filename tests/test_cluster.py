@@ -22,6 +22,8 @@ import yaml
 from conftest import REPO
 from mlflow import MlflowClient
 
+from meshseg.tracking import is_fold_run
+
 pytestmark = pytest.mark.cluster
 
 SCRIPT = REPO / "scripts/local_cluster.sh"
@@ -77,7 +79,7 @@ def server_runs(env, status=None, **tags):
     if exp is None:
         return []
     filt = " and ".join(f"tags.{k} = '{v}'" for k, v in tags.items())
-    found = client.search_runs([exp.experiment_id], filt)
+    found = [r for r in client.search_runs([exp.experiment_id], filt) if is_fold_run(r)]  # no sweep's parent
     return [r for r in found if status is None or r.info.status == status]
 
 
@@ -113,6 +115,13 @@ def test_sweeps_on_slurm_log_to_the_server_resume_and_survive_scancel(cluster, t
     }
     assert all(d.data.tags.get("slurm_job") for d in done)  # each ran as a SLURM job, and says which
     assert len({d.data.tags["slurm_job"] for d in done}) == 10
+    # the sweep is one parent run, made where the sweep was expanded; each job's run is nested under it and
+    # keeps its model as a logged model on the server
+    exp_id = client.get_experiment_by_name("meshseg").experiment_id
+    (parent,) = [r for r in client.search_runs([exp_id]) if not is_fold_run(r)]
+    assert {d.data.tags["mlflow.parentRunId"] for d in done} == {parent.info.run_id}
+    models = client.search_logged_models([exp_id])
+    assert sorted(m.source_run_id for m in models) == sorted(d.info.run_id for d in done)
     for d in done:
         rows = list(csv.DictReader(open(client.download_artifacts(d.info.run_id, "per_mesh.csv", str(tmp_path)))))
         assert len(rows) == 1 and float(rows[0]["acc"]) == pytest.approx(d.data.metrics["test/acc"])

@@ -1,5 +1,6 @@
-"""`mlflow ui` on 127.0.0.1 against the smoke store: the runs and their PNG artifacts are served over
-the REST API (what the browser UI shows), and the process tree started here is stopped."""
+"""`mlflow ui` on 127.0.0.1 against the smoke store: the runs, their PNG artifacts, the sweeps' parent runs and
+the folds' logged models are served over the REST API (what the browser UI shows), and the process tree started
+here is stopped; in headless Chromium (`make ui-test`), the UI shows them."""
 
 import json
 import os
@@ -15,7 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from meshseg.tracking import FoldRecord
+from meshseg.sweep import PARENT_RUN_ID
+from meshseg.tracking import SWEEP_KEY, FoldRecord
 
 
 def free_port() -> int:
@@ -96,8 +98,14 @@ def test_mlflow_ui_serves_the_runs_and_their_pictures_then_stops(smoke_store):
         exp = get(base, "/api/2.0/mlflow/experiments/get-by-name", experiment_name="meshseg")["experiment"]
         search = {"experiment_ids": [exp["experiment_id"]], "max_results": 100}
         runs = post(base, "/api/2.0/mlflow/runs/search", search)["runs"]
-        finished = [r for r in runs if r["info"]["status"] == "FINISHED"]
-        assert len(finished) == 18
+        tags = [{t["key"]: t["value"] for t in r["data"]["tags"]} for r in runs]
+        parents = {r["info"]["run_id"] for r, t in zip(runs, tags) if SWEEP_KEY in t}
+        finished = [r for r, t in zip(runs, tags) if r["info"]["status"] == "FINISHED" and SWEEP_KEY not in t]
+        assert len(finished) == 18 and len(parents) == 2  # conftest's two sweeps, each a parent of its folds
+        assert {t[PARENT_RUN_ID] for t in tags if SWEEP_KEY not in t} == parents
+        models = post(base, "/api/2.0/mlflow/logged-models/search", {"experiment_ids": [exp["experiment_id"]]})
+        sources = sorted(m["info"]["source_run_id"] for m in models["models"])  # one logged model per fold
+        assert sources == sorted(r["info"]["run_id"] for r in finished)
         for run in finished[:3]:
             rid = run["info"]["run_id"]
             top = {f["path"] for f in get(base, "/api/2.0/mlflow/artifacts/list", run_id=rid)["files"]}
@@ -156,8 +164,16 @@ def wait_for(driver, predicate, what: str, timeout: float = 60):
     pytest.fail(f"the UI never showed {what}; it showed:\n{text[:3000]}")
 
 
+def expand(browser, name: str) -> None:
+    """Click the toggle of the runs table's row named `name` (a parent run's: its nested runs open under it)."""
+    from selenium.webdriver.common.by import By
+
+    (row,) = [r for r in browser.find_elements(By.CSS_SELECTOR, ".ag-row") if name in r.text]
+    row.find_element(By.CSS_SELECTOR, "button").click()
+
+
 @pytest.mark.browser
-def test_the_ui_shows_runs_and_a_runs_source_dataset_curve_and_render(smoke_store, browser):
+def test_the_ui_shows_sweeps_their_nested_folds_a_folds_page_and_its_model(smoke_store, browser):
     import getpass
 
     from selenium.webdriver.common.by import By
@@ -166,21 +182,39 @@ def test_the_ui_shows_runs_and_a_runs_source_dataset_curve_and_render(smoke_stor
 
     with mlflow_ui(smoke_store) as (base, _, _):
         tracker = Tracker(f"sqlite:///{smoke_store}/mlflow.db", "meshseg")
-        runs = tracker.runs("attributes.status = 'FINISHED'")
+        runs = tracker.runs("attributes.status = 'FINISHED'")  # the folds
         names = {r.info.run_name for r in runs}
         assert len(names) == len(runs) == 18  # one distinct name per fold run
-        # the URL `make ui` prints lands on the runs table, every name in view, what differs first
+        parents = {p.info.run_id: p.info.run_name for p in tracker.client.search_runs([tracker.experiment_id])}
+        parents = {i: n for i, n in parents.items() if i in {r.data.tags[PARENT_RUN_ID] for r in runs}}
+        assert len(parents) == 2
+        # the URL `make ui` prints lands on the runs table: a row per sweep, its folds folded under it
         browser.get(tracker.runs_url(base))
-        text = wait_for(browser, lambda t: all(n in t for n in names), "every run name")
-        assert "18 matching runs" in text
+        text = wait_for(browser, lambda t: all(n in t for n in parents.values()), "each sweep's row")
+        assert "20 matching runs" in text and not any(n in text for n in names)
+        (first, second) = parents
+        folds = {r.info.run_name for r in runs if r.data.tags[PARENT_RUN_ID] == first}
+        expand(browser, parents[first])
+        text = wait_for(browser, lambda t: all(n in t for n in folds), "the folds of the first sweep, once opened")
+        assert not any(n in text for n in names - folds)  # the other sweep's folds are still folded under it
+        expand(browser, parents[second])
+        wait_for(browser, lambda t: all(n in t for n in names), "every fold, under its sweep")
         run = next(r for r in runs if r.data.tags["model"] == "cnn1d")
         tags = run.data.tags
-        # a run page: source, user, git commit, the command line as description, the dataset
+        # a fold's page: its sweep, source, user, git commit, the command line as description, the dataset, its model
         browser.get(tracker.run_url(run.info.run_id, base))
-        text = wait_for(browser, lambda t: "About this run" in t and "Datasets" in t, "the run overview")
+        text = wait_for(browser, lambda t: "About this run" in t and "Logged models (1)" in t, "the run overview")
         dataset = f"{tags['dataset']}/{tags['category']}"
         for shown in ("meshseg.run", getpass.getuser(), tags["git_sha"][:7], "python -m meshseg.run", dataset):
             assert shown in text, shown
+        assert f"Parent run\n{parents[tags[PARENT_RUN_ID]]}" in text
+        # the fold's model: listed on the experiment's Models tab by its run, its page with the fold's test/acc
+        (output,) = run.outputs.model_outputs
+        browser.get(f"{base}/#/experiments/{tracker.experiment_id}/models?workflowType=machine_learning")
+        text = wait_for(browser, lambda t: all(n in t for n in names), "every fold's model, by its run")
+        browser.get(f"{base}/#/experiments/{tracker.experiment_id}/models/{output.model_id}")
+        text = wait_for(browser, lambda t: "Metrics (" in t and run.info.run_name in t, "the model's page")
+        assert f"{FoldRecord.ACC}\n-\n{run.info.run_name}\n{run.data.metrics[FoldRecord.ACC]}" in text
         # the train/loss curve, one point per epoch
         browser.get(tracker.run_url(run.info.run_id, base) + "/model-metrics")
         wait_for(browser, lambda t: "\ntrain\n(" in t, "the metric charts")

@@ -121,25 +121,21 @@ def test_features_refuses_an_unwritable_out_before_computing(tmp_path):
     one_error_line(r, "cannot write in /proc")
 
 
-def test_a_truncated_model_names_the_run_not_a_temporary_download(smoke_store):
+def test_a_truncated_model_names_the_run_not_a_temporary_download(smoke_store, monkeypatch):
+    import meshseg.predict
     from meshseg.predict import load_run_model
     from meshseg.tracking import Tracker
 
     tracker = Tracker(f"sqlite:///{smoke_store}/mlflow.db", "meshseg", str(Path(smoke_store) / "artifacts"))
     run = tracker.runs("tags.model = 'cnn1d'")[0]
-    real = tracker.client
+    download = meshseg.predict.download_model
 
-    class Truncating:  # downloads as the store does, then cuts model.pt short (the store itself is shared)
-        def __getattr__(self, name):
-            return getattr(real, name)
+    def truncating(*args):  # downloads as the store does, then cuts model.pt short (the store itself is shared)
+        (model,) = (folder := download(*args)).rglob("model.pt")
+        model.write_bytes(model.read_bytes()[:100])
+        return folder
 
-        def download_artifacts(self, run_id, path, dst):
-            folder = real.download_artifacts(run_id, path, dst)
-            model = Path(folder) / "model.pt"
-            model.write_bytes(model.read_bytes()[:100])
-            return folder
-
-    tracker.client = Truncating()
-    with pytest.raises(Exception, match=rf"^run_id={run.info.run_id} \(.*\): its model/ artifact cannot load") as e:
+    monkeypatch.setattr(meshseg.predict, "download_model", truncating)
+    with pytest.raises(Exception, match=rf"^run_id={run.info.run_id} \(.*\): its model cannot load") as e:
         load_run_model(tracker, run.info.run_id)
     assert "/tmp" not in str(e.value)  # not the temporary download's path, gone by the time it is read

@@ -32,6 +32,7 @@ from meshseg.report.manifest import Column
 from meshseg.report.write import FILES
 from meshseg.reproduce import MissingCell, missing_cells, reproduce
 from meshseg.reproduce import main as reproduce_main
+from meshseg.tracking import is_fold_run
 
 SYNTH = REPO / "experiments/synthetic.yaml"
 
@@ -53,9 +54,10 @@ def cell(rows: list[dict], row: str, column: str) -> dict:
 
 
 def runs_of(store: Path, experiment: str = "meshseg", filter_string: str = "") -> list:
+    """The experiment's runs but sweeps' parent runs (meshseg.tracking.sweeps)."""
     client = MlflowClient(f"sqlite:///{store}/mlflow.db")
     exp = client.get_experiment_by_name(experiment)
-    return client.search_runs([exp.experiment_id], filter_string) if exp else []
+    return [r for r in client.search_runs([exp.experiment_id], filter_string) if is_fold_run(r)] if exp else []
 
 
 # --- statistics -----------------------------------------------------------------------------------

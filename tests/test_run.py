@@ -20,7 +20,7 @@ from hydra import compose, initialize_config_dir
 from mlflow import MlflowClient
 
 from meshseg import CONF_DIR
-from meshseg.tracking import FoldRecord, config_hash, flatten
+from meshseg.tracking import FoldRecord, config_hash, flatten, is_fold_run
 
 SMALL = ["dataset.meshes_per_category=5", "features.groups=[curvature,pca,gc]", "features.name=local", "budget=smoke"]
 
@@ -56,10 +56,11 @@ def meshseg_run(*overrides, timeout=600, **kw):
 
 
 def runs(store: Path, status: str | None = None):
+    """The store's fold runs (a sweep's parent run is none: tests/test_sweep_parent.py)."""
     client = MlflowClient(f"sqlite:///{store}/mlflow.db")
     exp = client.get_experiment_by_name("meshseg")
     found = client.search_runs([exp.experiment_id]) if exp else []
-    return [r for r in found if status is None or r.info.status == status]
+    return [r for r in found if is_fold_run(r) and (status is None or r.info.status == status)]
 
 
 # --- configuration --------------------------------------------------------------------------------
@@ -182,7 +183,10 @@ def test_config_hash_ignores_paths_and_sees_knobs():
 # --- runs ------------------------------------------------------------------------------------------
 
 
-def test_one_run_follows_the_tracking_contract_and_reruns_skip(store):
+def test_one_run_follows_the_tracking_contract_and_reruns_skip(store, tmp_path):
+    from meshseg.predict import download_model
+    from meshseg.tracking import Tracker
+
     r = meshseg_run(*SMALL, "category=cup", "fold=1")
     assert r.returncode == 0, r.stderr[-3000:]
     (run,) = runs(store)
@@ -229,14 +233,16 @@ def test_one_run_follows_the_tracking_contract_and_reruns_skip(store):
     assert sorted(p.name for p in local.iterdir()) == [
         "config.yaml",
         "confusion.png",
-        "model",
         "overrides.yaml",
         "per_mesh.csv",
         "predictions.npz",
         "renders",
         "run.log",
     ]
-    assert sorted(p.name for p in (local / "model").iterdir()) == ["model.pt", "model.yaml"]
+    # the fold's model: its MLflow logged model (meshseg.pyfunc), the FoldModel's files inside
+    model = download_model(Tracker(f"sqlite:///{store}/mlflow.db", "meshseg"), run, str(tmp_path / "m"))
+    assert {"MLmodel", "input_example.json"} <= {p.name for p in model.iterdir()}
+    assert sorted(p.name for p in (model / "artifacts/fold_model").iterdir()) == ["model.pt", "model.yaml"]
     assert "category=cup" in (local / "overrides.yaml").read_text()
     assert "epoch 2/2" in (local / "run.log").read_text()  # the job's own log, as written by the run
     assert [p.name for p in (local / "renders").iterdir()] == ["mesh_1.png"]  # the fold's one test mesh

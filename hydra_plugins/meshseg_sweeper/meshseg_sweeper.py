@@ -3,11 +3,12 @@ its dataset, and one that does not fix `fold` every fold of its split (folds dif
 under leave-one-out, so this is not a Cartesian product Hydra could express).
 
 Every job's settings are checked before the first job starts; a bad one ends the sweep with one
-`error:` line. Jobs that fail with a user error (bad data) are listed one line each after the sweep,
-which then exits non-zero; any other failure keeps its traceback.
+`error:` line. Then the sweep's parent run is made, or found again when the sweep ran before
+(meshseg.sweep.SweepParent): the fold runs are nested under it, and it ends with the sweep's summary.
+Jobs that fail with a user error (bad data) are listed one line each after the sweep, which then
+exits non-zero; any other failure keeps its traceback.
 """
 
-import math
 import os
 import sys
 import time
@@ -34,33 +35,19 @@ class MeshsegSweeperConf:
 ConfigStore.instance().store(group="hydra/sweeper", name="meshseg", node=MeshsegSweeperConf, provider="meshseg")
 
 
-def summary(returns: list[Sequence[JobReturn]], failed: list[JobReturn], seconds: float) -> str:
-    """The sweep's closing lines: jobs ran / skipped / failed, and the mean test accuracy per category."""
-    done = [r.return_value for batch in returns for r in batch if r.status == JobStatus.COMPLETED]
-    done = [d for d in done if isinstance(d, dict) and "acc" in d]  # meshseg.run's Outcome
-    ran = sum(not d["skipped"] for d in done)
-    lines = [f"sweep: {ran} ran, {len(done) - ran} skipped, {len(failed)} failed in {seconds / 60:.1f} min"]
-    by_category: dict[str, list[float]] = {}
-    for d in done:
-        if not math.isnan(d["acc"]):
-            by_category.setdefault(d["category"], []).append(d["acc"])
-    if by_category:
-        means = [f"{c} {100 * sum(a) / len(a):.2f} ({len(a)} folds)" for c, a in by_category.items()]
-        lines.append("sweep: mean test/acc by category (fold means, %): " + ", ".join(means))
-    return "\n".join(lines)
-
-
 class MeshsegSweeper(BasicSweeper):
     def split_arguments(self, overrides: list[Override], max_batch_size: int | None) -> list[list[list[str]]]:
         from meshseg.cli import user_errors
         from meshseg.sweep import sweep_cells
 
         jobs = []
+        self.trackings = []  # each combination's tracking settings: where the sweep's parent run goes
         for combo in BasicSweeper.split_arguments(overrides, None)[0]:
             keys = {o.split("=", 1)[0].lstrip("+~") for o in combo}
             with user_errors():
                 cfg = self.hydra_context.config_loader.load_sweep_config(self.config, list(combo))
                 cells = sweep_cells(cfg, "category" in keys, "fold" in keys)
+            self.trackings.append(cfg.tracking)
             for category, fold in cells:
                 jobs.append(
                     [
@@ -74,7 +61,7 @@ class MeshsegSweeper(BasicSweeper):
     def sweep(self, arguments: list[str]) -> Any:
         """BasicSweeper.sweep, except that failed jobs are gathered and reported together at the end
         (the basic sweeper re-raises the first with a traceback, whatever it was)."""
-        from meshseg.errors import MeshsegError
+        from meshseg.sweep import SWEEP_JOBS, SWEEP_START, SweepParent
 
         params_conf = self._parse_config()
         params_conf.extend(arguments)
@@ -84,14 +71,24 @@ class MeshsegSweeper(BasicSweeper):
         sweep_dir.mkdir(parents=True, exist_ok=True)
         OmegaConf.save(self.config, sweep_dir / "multirun.yaml")
 
+        # each job logs `job k/N` with the time left (meshseg.sweep.job_progress); launchers pass the environment on
+        os.environ[SWEEP_JOBS], os.environ[SWEEP_START] = str(sum(map(len, self.overrides))), f"{time.time():.3f}"
+        parent = SweepParent.open(self.trackings, params_conf)
+        try:
+            return self._launch_all(parent)
+        except BaseException as e:  # interrupted (KILLED), or a cluster job lost and a failed job reported (FAILED)
+            if parent is not None:
+                parent.close(None, "KILLED" if isinstance(e, KeyboardInterrupt) else "FAILED")
+            raise
+
+    def _launch_all(self, parent) -> Any:
+        from meshseg.errors import MeshsegError
+        from meshseg.sweep import SweepSummary
+
         returns: list[Sequence[JobReturn]] = []
         failed: list[JobReturn] = []
         initial_job_idx = 0
         t0 = time.perf_counter()
-        from meshseg.sweep import SWEEP_JOBS, SWEEP_START
-
-        # each job logs `job k/N` with the time left (meshseg.sweep.job_progress); launchers pass the environment on
-        os.environ[SWEEP_JOBS], os.environ[SWEEP_START] = str(sum(map(len, self.overrides))), f"{time.time():.3f}"
         while not self.is_done():
             batch = self.get_job_batch()
             self.validate_batch_is_legal(batch)
@@ -108,7 +105,11 @@ class MeshsegSweeper(BasicSweeper):
             failed.extend(r for r in results if r.status != JobStatus.COMPLETED)
             initial_job_idx += len(batch)
             returns.append(results)
-        print(summary(returns, failed, time.perf_counter() - t0), file=sys.stderr, flush=True)
+        outcomes = [r.return_value for batch in returns for r in batch if r.status == JobStatus.COMPLETED]
+        summary = SweepSummary.of(outcomes, len(failed), time.perf_counter() - t0)
+        print(summary.lines(), file=sys.stderr, flush=True)
+        if parent is not None:
+            parent.close(summary, "FAILED" if failed else "FINISHED")
         if failed:
             other = [r for r in failed if not isinstance(r._return_value, MeshsegError)]
             if other:

@@ -13,6 +13,15 @@ import numpy as np
 from meshseg.tracking.identity import flatten
 from meshseg.tracking.provenance import git_sha, machine, slurm_job, versions
 
+#: the tag of a sweep's parent run (meshseg.tracking.sweeps), its value the sweep's identity: a run that is no fold,
+#: which every search for fold runs leaves out
+SWEEP_KEY = "sweep_key"
+
+
+def is_fold_run(run) -> bool:
+    """Whether a stored run is a fold's (or a report's), not a sweep's parent."""
+    return SWEEP_KEY not in run.data.tags
+
 
 @dataclass(frozen=True)
 class RunKey:
@@ -77,6 +86,9 @@ class FoldRecord:
     #: artifact: per-face arrays, keys `<prefix><mesh id>` with these dtypes
     PREDICTIONS = "predictions.npz"
     PREDICTION_ARRAYS = {"labels_": "int16", "labels_raw_": "int16", "probs_": "float16"}
+    #: the fold's model: the run's MLflow logged model of this name (`runs:/<run id>/model`, meshseg.pyfunc); runs
+    #: made before logged models kept the same files as their `model/` artifact
+    MODEL = "model"
 
     @staticmethod
     def tags(key: RunKey, fold, *, seed: int, accelerator: str, overrides=None) -> dict:

@@ -13,6 +13,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from meshseg.errors import TrackingError
+from meshseg.tracking.record import is_fold_run
 
 log = logging.getLogger(__name__)
 
@@ -179,11 +180,11 @@ def all_runs(client, experiment_id: str, filter_string: str = "") -> list:
 
 
 def search_runs(uri: str, experiment: str, filter_string: str = "") -> list:
-    """Every run of the experiment `experiment` in the store at `uri` that matches `filter_string`, read
-    only: [] when the experiment does not exist (it is never created)."""
+    """Every run of the experiment `experiment` in the store at `uri` that matches `filter_string`, sweeps' parent
+    runs left out, read only: [] when the experiment does not exist (it is never created)."""
     from mlflow import MlflowClient
 
     os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # one bar per run otherwise
     client = MlflowClient(tracking_uri=store_uri(uri))
     exp = retry(lambda: client.get_experiment_by_name(experiment), "get experiment")
-    return [] if exp is None else all_runs(client, exp.experiment_id, filter_string)
+    return [] if exp is None else [r for r in all_runs(client, exp.experiment_id, filter_string) if is_fold_run(r)]

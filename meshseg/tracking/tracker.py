@@ -19,7 +19,7 @@ import numpy as np
 from meshseg.errors import TrackingError
 from meshseg.tracking.lease import LEASE_OWNER, Heartbeat, Lease, holder, take_over
 from meshseg.tracking.pictures import pictures
-from meshseg.tracking.record import FoldRecord
+from meshseg.tracking.record import FoldRecord, is_fold_run
 from meshseg.tracking.store import (
     SQLITE,
     UI_URL,
@@ -73,8 +73,9 @@ class Tracker:
             return self.client.get_experiment_by_name(name).experiment_id
 
     def runs(self, filter_string: str = "") -> list:
-        """All runs of the experiment matching an MLflow filter string."""
-        return all_runs(self.client, self.experiment_id, filter_string)
+        """All runs of the experiment matching an MLflow filter string, sweeps' parent runs left out (they are no
+        folds: meshseg.tracking.sweeps)."""
+        return [r for r in all_runs(self.client, self.experiment_id, filter_string) if is_fold_run(r)]
 
     def finished(self, config_hash: str):
         """The FINISHED run with this config hash, or None."""
@@ -195,11 +196,12 @@ class Tracker:
             beat.stop()
         retry(lambda: self.client.set_terminated(run_id, status), "end run")
 
-    def log_metrics(self, run_id: str, metrics: dict[str, float]) -> None:
+    def log_metrics(self, run_id: str, metrics: dict[str, float], model_id: str | None = None) -> None:
+        """The run's metrics, also shown as the metrics of its logged model `model_id` when one is given."""
         from mlflow.entities import Metric
 
         now = int(time.time() * 1000)
-        items = [Metric(k, float(v), now, 0) for k, v in metrics.items()]
+        items = [Metric(k, float(v), now, 0, model_id=model_id) for k, v in metrics.items()]
         retry(lambda: self.client.log_batch(run_id, metrics=items), "log metrics")
 
     def log_params(self, run_id: str, params: dict) -> None:
@@ -231,11 +233,22 @@ class Tracker:
                 np.savez_compressed(d / R.PREDICTIONS, **arrays)
                 self.client.log_artifact(run_id, str(d / R.PREDICTIONS))
 
-    def log_model(self, run_id: str, model) -> None:
-        """The fold's model (`meshseg.predict.FoldModel`) as the run's `model/` artifact."""
-        with tempfile.TemporaryDirectory() as tmp:
-            model.save(Path(tmp))
-            retry(lambda: self.client.log_artifacts(run_id, tmp, "model"), "log model")
+    def log_model(self, run_id: str, save, tags: dict) -> str:
+        """An MLflow logged model of the run, named FoldRecord.MODEL (the run's Logged models, `runs:/<run id>/model`):
+        created here with `tags`, its files written by `save(model_id)` (meshseg.pyfunc, through MLflow's own
+        model logging, which talks to the store by its tracking uri); returns its id."""
+        import mlflow
+        from mlflow.entities import LoggedModelOutput
+
+        tags, name = {k: str(v) for k, v in tags.items()}, FoldRecord.MODEL
+        model = retry(
+            lambda: self.client.create_logged_model(self.experiment_id, name=name, source_run_id=run_id, tags=tags),
+            "create model",
+        )
+        mlflow.set_tracking_uri(self.uri)
+        save(model.model_id)
+        retry(lambda: self.client.log_outputs(run_id, [LoggedModelOutput(model.model_id, 0)]), "link model")
+        return model.model_id
 
     def log_dataset(self, run_id: str, name: str, digest: str, source: str) -> None:
         """The run's data as MLflow's dataset input (the UI's Datasets column): `name` (dataset/category),
