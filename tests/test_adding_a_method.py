@@ -19,6 +19,7 @@ SMALL = [
     "category=figure",
     "fold=0",
     "tracking.renders=0",
+    "trainer.threads=1",
 ]
 
 
