@@ -21,6 +21,17 @@ def require(path: Path) -> Path:
     return path
 
 
+#: fixtures of the tests that train folds (a store of runs, or a run of their own): those tests run first
+HEAVY = {"smoke_store", "store"}
+
+
+def pytest_collection_modifyitems(items):
+    """The tests that train folds first, the rest after, each in file order: pytest-xdist hands tests out one
+    at a time (--maxschedchunk=1 in pyproject), so the two workers share the long ones and the short ones
+    fill the end, where one worker would otherwise wait for the other's last long test."""
+    items.sort(key=lambda item: not HEAVY & set(getattr(item, "fixturenames", ())))
+
+
 def shared_dir(tmp_path_factory) -> Path:
     """The session's folder common to pytest-xdist's workers (the session's own without xdist)."""
     base = tmp_path_factory.getbasetemp()
