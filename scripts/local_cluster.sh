@@ -2,7 +2,7 @@
 # A one-node lab cluster on this machine, from Debian's packages: munge, slurmdbd on MariaDB (job
 # accounting: submitit reads job states with `sacct`), slurmctld + slurmd (SLURM), PostgreSQL and an
 # MLflow tracking server on it that serves artifacts. For `make cluster-test` and for
-# trying `hydra/launcher=slurm` out; README "Running on a cluster".
+# trying `hydra/launcher=slurm` out; docs/cluster.md.
 #
 #   scripts/local_cluster.sh up      install what is missing (as root), start everything, wait until each
 #                                    answers, write $STATE/env.sh (SLURM_CONF, MESHSEG_CLUSTER_URI, ...)

@@ -1,6 +1,6 @@
-"""README "Adding a method", executed: its code blocks (a network, a scikit-learn-shaped fitter and their
+"""docs/adding-a-method.md, executed: its code blocks (a network, a scikit-learn-shaped fitter and their
 YAML files) are written to a folder of the test's own, and `meshseg.run` trains both at budget=smoke with
-nothing else added. If the README's example stops working, this fails."""
+nothing else added. If the page's example stops working, this fails."""
 
 import os
 import re
@@ -23,15 +23,14 @@ SMALL = [
 ]
 
 
-def readme_files() -> dict[str, str]:
-    """The README section's code blocks that name a file: {path: text}."""
-    text = (REPO / "README.md").read_text()
-    section = text.split("## Adding a method", 1)[1].split("\n## ", 1)[0]
-    return dict(re.findall(r"```(?:python|yaml) (\S+)\n(.*?)```", section, re.S))
+def page_files() -> dict[str, str]:
+    """The page's code blocks that name a file: {path: text}."""
+    text = (REPO / "docs/adding-a-method.md").read_text()
+    return dict(re.findall(r"```(?:python|yaml) (\S+)\n(.*?)```", text, re.S))
 
 
 def test_a_method_is_one_class_and_one_yaml_file(tmp_path, cache_dir):
-    files = readme_files()
+    files = page_files()
     assert set(files) == {"my_methods.py", "my_conf/model/mlp.yaml", "my_conf/model/nearest_mean.yaml"}
     for path, body in files.items():
         (tmp_path / path).parent.mkdir(parents=True, exist_ok=True)

@@ -20,8 +20,8 @@ Two implementations compute it, from the same settings and, with the same seed, 
   `model=cnn1d` trains. tests/test_cnn1d.py holds its logits, gradients and batch-norm statistics to
   `PaperCNN1D`'s, and tests/test_cnn1d_reference.py trains a fold with each.
 
-Speed: benchmarks/train_throughput.py times both, interleaved, in one run. Its run recorded in README.md
-("Benchmarks": 2 threads, `--malloc-tune`, 2026-11-24) trained `MultiBranchCNN1D` at 1.26-1.54 times
+Speed: benchmarks/train_throughput.py times both, interleaved, in one run. Its run recorded in docs/benchmarks.md
+(2 threads, `--malloc-tune`, 2026-11-24) trained `MultiBranchCNN1D` at 1.26-1.54 times
 the samples/s of `PaperCNN1D` for 1-4 branches; machines of this kind differ, so compare one run only.
 """
 

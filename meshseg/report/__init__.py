@@ -3,10 +3,11 @@
 
     python -m meshseg.report experiments/table2_psb_5fold.yaml budget=cpu
 
-Modules: manifest (experiments/*.yaml), runs (the store's fold runs as one per-mesh frame), cells (the table's
-values), aggregate (cells, averages, bootstrap and paired blocks from the frame), table (a manifest's table
-assembled), write (every format), claims_file and claims (the paper's claims judged), config (conf/report.yaml
-and the command line), publish (build, write, log), app (the command).
+Modules: manifest (experiments/*.yaml), runs (the fold runs of a store, or of results/ records, as one per-mesh
+frame), cells (the table's values), aggregate (cells, averages, bootstrap and paired blocks from the frame), table
+(a manifest's table assembled: collect, collect_records), write (every format), claims_file and claims (the
+paper's claims judged), config (conf/report.yaml and the command line), publish (build, write, log), app (the
+command).
 """
 
 from meshseg.errors import ManifestError
@@ -14,7 +15,7 @@ from meshseg.report.app import report
 from meshseg.report.cells import Table
 from meshseg.report.manifest import Manifest, load_manifest
 from meshseg.report.publish import build, publish, summary
-from meshseg.report.table import collect
+from meshseg.report.table import collect, collect_records
 from meshseg.report.write import write_report
 
 __all__ = [
@@ -23,6 +24,7 @@ __all__ = [
     "Table",
     "load_manifest",
     "collect",
+    "collect_records",
     "write_report",
     "build",
     "publish",

@@ -30,13 +30,23 @@ def score(spec: Predictions, dataset, category: str, mesh_ids, cache_dir: str) -
     out = []
     for mesh_id in mesh_ids:
         mesh = dataset.load(category, mesh_id)
-        path = folder / f"{mesh_id}.lab"
-        if not path.is_file():
-            raise MeshDataError(path, f"no labelling of {category} mesh {mesh_id}")
-        local, names = read_psb_labels(path, mesh.n_faces)
-        unknown = [n for n in names if n not in mesh.label_names]
-        if unknown:
-            raise MeshDataError(path, f"labels {unknown} are not in {category}'s {list(mesh.label_names)}")
-        to_vocab = np.array([mesh.label_names.index(n) for n in names], np.int64)
-        out.append((mesh_id, 100.0 * area_weighted_accuracy(to_vocab[local], mesh.labels, mesh.face_areas)))
+        labels = _read(folder, mesh)
+        out.append((mesh_id, 100.0 * area_weighted_accuracy(labels, mesh.labels, mesh.face_areas)))
     return out
+
+
+def labelling(spec: Predictions, mesh, cache_dir: str) -> np.ndarray:
+    """The labelling on disk of `mesh` (a dataset's Mesh), one index into its label names per face: what
+    `score` scores, e.g. to render it."""
+    return _read(_folder(spec, cache_dir), mesh)
+
+
+def _read(folder: Path, mesh) -> np.ndarray:
+    path = folder / f"{mesh.id}.lab"
+    if not path.is_file():
+        raise MeshDataError(path, f"no labelling of {mesh.category} mesh {mesh.id}")
+    local, names = read_psb_labels(path, mesh.n_faces)
+    unknown = [n for n in names if n not in mesh.label_names]
+    if unknown:
+        raise MeshDataError(path, f"labels {unknown} are not in {mesh.category}'s {list(mesh.label_names)}")
+    return np.array([mesh.label_names.index(n) for n in names], np.int64)[local]

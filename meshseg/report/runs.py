@@ -2,17 +2,22 @@
 
 A table finds its runs by the config hash `meshseg.run` gives them (the newest FINISHED run of a hash wins),
 so only runs made with exactly a cell's configuration (budget included) count. Each run's per-mesh table
-(FoldRecord.PER_MESH) gives the rows; the run's wall time and counts ride along on each of them."""
+(FoldRecord.PER_MESH) gives the rows; the run's wall time and counts ride along on each of them. The same
+frame can be read from shipped results records (`results/`, meshseg.results) without a store."""
 
 from __future__ import annotations
 
 import csv
+import logging
 import tempfile
+from pathlib import Path
 
 import pandas as pd
 
 from meshseg.errors import TrackingError
 from meshseg.tracking import FoldRecord, search_runs, store_uri
+
+log = logging.getLogger(__name__)
 
 #: count params (`n_*`) of a fold run that learning curves read (n_train_distinct: only runs made since it exists)
 RUN_COUNTS = ("n_train_samples", "n_train_distinct", "n_epochs")
@@ -37,10 +42,7 @@ def _mesh_accuracies(client, run) -> list[tuple[str, dict[str, float]]]:
         with tempfile.TemporaryDirectory() as tmp:
             path = client.download_artifacts(run.info.run_id, FoldRecord.PER_MESH, tmp)
             with open(path, newline="") as f:
-                return [
-                    (row["mesh"], {m: 100.0 * float(row[m]) for m in FoldRecord.MESH_METRICS})
-                    for row in csv.DictReader(f)
-                ]
+                return [(row["mesh"], _percent(row)) for row in csv.DictReader(f)]
     except Exception as e:  # a FINISHED run without a readable table is damage in the store, not a missing fold
         raise TrackingError(
             f"run {run.info.run_id} ({run.info.run_name}): cannot read {'/'.join(FoldRecord.MESH_METRICS)} from "
@@ -50,14 +52,21 @@ def _mesh_accuracies(client, run) -> list[tuple[str, dict[str, float]]]:
 
 def _run_rows(client, run) -> list[dict]:
     """One row per test mesh of the run: its accuracies, the run's identity, wall time and counts."""
-    info, params = run.info, run.data.params
-    common = {
-        "config_hash": run.data.tags["config_hash"],
-        "run_id": info.run_id,
-        "seconds": (info.end_time - info.start_time) / 1000 if info.end_time else float("nan"),
-        "counts": {k: int(params[k]) for k in RUN_COUNTS if k in params},
-    }
+    info = run.info
+    common = _run_columns(run.data.tags["config_hash"], info.run_id, info.start_time, info.end_time, run.data.params)
     return [{**common, "line": i, "mesh": m, **accs} for i, (m, accs) in enumerate(_mesh_accuracies(client, run))]
+
+
+def _run_columns(config_hash: str, run_id: str, start: int, end: int | None, counts: dict) -> dict:
+    """What a run adds to each of its meshes' rows: identity, wall time (s; NaN while it has no end), RUN_COUNTS."""
+    seconds = (end - start) / 1000 if end else float("nan")
+    kept = {k: int(counts[k]) for k in RUN_COUNTS if k in counts}
+    return {"config_hash": config_hash, "run_id": run_id, "seconds": seconds, "counts": kept}
+
+
+def _percent(row: dict) -> dict[str, float]:
+    """A per-mesh row's FoldRecord.MESH_METRICS (fractions) in %."""
+    return {m: 100.0 * float(row[m]) for m in FoldRecord.MESH_METRICS}
 
 
 def mesh_table(uri: str, experiment: str, wanted: pd.DataFrame) -> pd.DataFrame:
@@ -69,7 +78,40 @@ def mesh_table(uri: str, experiment: str, wanted: pd.DataFrame) -> pd.DataFrame:
     by_hash = finished_by_hash(uri, experiment)
     found = [by_hash[h] for h in dict.fromkeys(wanted["config_hash"]) if h in by_hash]
     client = MlflowClient(tracking_uri=store_uri(uri)) if found else None
-    runs = pd.DataFrame([row for run in found for row in _run_rows(client, run)], columns=list(RUN_COLUMNS))
+    return _in_order(wanted, [row for run in found for row in _run_rows(client, run)])
+
+
+def records_mesh_table(root, wanted: pd.DataFrame) -> pd.DataFrame:
+    """mesh_table's frame, read from the results records under `root` (e.g. results/) instead of a store: a
+    record is its run exported under the run's config hash, so the wanted runs are found without importing
+    the records into MLflow first (a second, where an import takes minutes). The newest record of a hash wins;
+    one that `meshseg.results import` would refuse is no run, with a warning, as it is in the report."""
+    from meshseg.results import check_record, load_records
+
+    hashes = set(wanted["config_hash"])
+    by_hash: dict[str, dict] = {}
+    for path, record in load_records(Path(root)):
+        h = record["config_hash"]
+        if h not in hashes:
+            continue
+        why = check_record(record)
+        if why is not None:
+            log.warning("not read: %s: %s", path, why)
+        elif h not in by_hash or (record["end_time"] or 0) > (by_hash[h]["end_time"] or 0):
+            by_hash[h] = {**record, "path": str(path)}
+    return _in_order(wanted, [row for record in by_hash.values() for row in _record_rows(record)])
+
+
+def _record_rows(record: dict) -> list[dict]:
+    """_run_rows of a record (its file's path stands for the run id, which a record does not carry)."""
+    r = record
+    common = _run_columns(r["config_hash"], r["path"], r["start_time"], r["end_time"], r.get("counts", {}))
+    return [{**common, "line": i, "mesh": row["mesh"], **_percent(row)} for i, row in enumerate(r["per_mesh"])]
+
+
+def _in_order(wanted: pd.DataFrame, rows: list[dict]) -> pd.DataFrame:
+    """The runs' rows joined to the wanted fold runs they are, in `wanted`'s order, then each run's mesh order."""
+    runs = pd.DataFrame(rows, columns=list(RUN_COLUMNS))
     order = wanted.assign(order=range(len(wanted)))
     meshes = order.merge(runs, on="config_hash", how="inner")
     return meshes.sort_values(["order", "line"], kind="stable").drop(columns=["order", "line"]).reset_index(drop=True)

@@ -1,6 +1,6 @@
 """A manifest's table from the logged runs (DESIGN "Tracking contract"): each cell's runs planned from its run
-config, the runs read into one per-mesh frame (meshseg/report/runs.py), the cells and blocks computed from it
-(meshseg/report/aggregate.py).
+config, the runs read into one per-mesh frame (meshseg/report/runs.py: from the store, or with collect_records
+from the shipped results records), the cells and blocks computed from it (meshseg/report/aggregate.py).
 
 A cell is one (column, set): the mean accuracy over all test meshes of all folds. A cell whose folds are not
 all FINISHED is incomplete and has no value; one no run can exist for (its dataset lacks the category) is
@@ -24,7 +24,7 @@ from meshseg.errors import ConfigError, ManifestError, MeshsegError
 from meshseg.report.aggregate import Bootstrap, average_row, compare, refinement_gain, set_cell
 from meshseg.report.cells import Cell, Row, Table, no_meshes
 from meshseg.report.manifest import Column, Group, Manifest, Set
-from meshseg.report.runs import RUN_COLUMNS, mesh_table
+from meshseg.report.runs import RUN_COLUMNS, mesh_table, records_mesh_table
 from meshseg.tracking import FoldRecord
 
 
@@ -170,8 +170,9 @@ def _fill_predictions(plan: CellPlan) -> CellPlan:
     return replace(plan, scores=rows)
 
 
-def _meshes(plans: list[CellPlan]) -> pd.DataFrame:
-    """The per-mesh frame of every planned cell: the runs' rows store by store, then the predictions' rows."""
+def _meshes(plans: list[CellPlan], read) -> pd.DataFrame:
+    """The per-mesh frame of every planned cell: the runs' rows as `read` finds them (_from_stores: store by
+    store), then the predictions' rows."""
     wanted = pd.DataFrame(
         [
             {
@@ -189,14 +190,19 @@ def _meshes(plans: list[CellPlan]) -> pd.DataFrame:
         ],
         columns=["group", "row", "column", "category", "fold", "config_hash", "uri", "experiment"],
     )
-    parts = [
-        mesh_table(*store, part.drop(columns=["uri", "experiment"]))
-        for store, part in wanted.groupby(["uri", "experiment"], sort=False)  # one search per store
-    ]
+    parts = read(wanted)
     parts += [pd.DataFrame(list(p.scores)) for p in plans if p.scores]
     parts = [p for p in parts if not p.empty]
     meshes = pd.concat(parts, ignore_index=True) if parts else no_meshes()
     return meshes.reindex(columns=MESH_COLUMNS)
+
+
+def _from_stores(wanted: pd.DataFrame) -> list[pd.DataFrame]:
+    """The wanted fold runs from the store each one's column logs to (its uri and experiment): one search per store."""
+    return [
+        mesh_table(*store, part.drop(columns=["uri", "experiment"]))
+        for store, part in wanted.groupby(["uri", "experiment"], sort=False)
+    ]
 
 
 #: the per-mesh frame's columns: the cell's keys, its fold, the run's identity, time and counts, the mesh's scores
@@ -275,6 +281,22 @@ def collect(
     two column keys, or a list of such pairs (None: the manifest's `paired:` list); `boot` how intervals are
     drawn (None: Bootstrap's defaults)."""
     boot = boot or Bootstrap()
+    return _blocks(_table(manifest, overrides, metric, sets, boot, _from_stores), paired, boot)
+
+
+def collect_records(
+    root, manifest: Manifest, overrides=(), *, metric: str = "acc", sets=None, boot: Bootstrap | None = None
+) -> Table:
+    """collect's table with its fold runs read from the results records under `root` (e.g. results/; see
+    meshseg.results) instead of a store: the table a store holding just those runs gives, without importing
+    them first. Its paired blocks are the manifest's (aggregate.compare makes others)."""
+    boot = boot or Bootstrap()
+    read = lambda wanted: [records_mesh_table(root, wanted.drop(columns=["uri", "experiment"]))]
+    return _blocks(_table(manifest, overrides, metric, sets, boot, read), None, boot)
+
+
+def _table(manifest: Manifest, overrides, metric: str, sets, boot: Bootstrap, read) -> Table:
+    """The table without its blocks, its runs' per-mesh rows found by `read` (see _meshes)."""
     if metric not in FoldRecord.MESH_METRICS:
         raise ConfigError(f"report.metric={metric} is not allowed: choose one of {list(FoldRecord.MESH_METRICS)}")
     keep = _kept_sets(manifest, sets)
@@ -284,7 +306,7 @@ def collect(
         chosen = [s for s in g.sets if keep is None or s.name in keep or s.category in keep]
         if chosen:
             grids[g.name] = planner.plans(g, chosen)
-    meshes = _meshes([p for grid in grids.values() for row in grid for p in row])
+    meshes = _meshes([p for grid in grids.values() for row in grid for p in row], read)
     table = Table(manifest, (), tuple(overrides), metric, boot.level, planner.budget_text, meshes=meshes)
     rows: list[Row] = []
     for group in (g for g in manifest.groups if g.name in grids):
@@ -296,8 +318,7 @@ def collect(
     if manifest.total and keep is None:
         every = [r for r in rows if r.kind == "set"]
         rows.append(average_row(table, manifest.total, "total", every, manifest.published_total, boot))
-    table = replace(table, rows=tuple(rows), sets=None if sets is None else tuple(str(s) for s in sets))
-    return _blocks(table, paired, boot)
+    return replace(table, rows=tuple(rows), sets=None if sets is None else tuple(str(s) for s in sets))
 
 
 def _blocks(table: Table, paired, boot: Bootstrap) -> Table:

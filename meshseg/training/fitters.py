@@ -5,7 +5,7 @@ run's `TrainContext` go to the constructor, `fit(train)` trains on a `TrainSet` 
 
 After `fit`, `parts_` holds the trained parts by stage name (net, ae1, forest, ...) and `epochs_` the
 passes made over the training faces by all network stages. A new method is one such class (or, for a
-network, one `nn.Module` under `NetFitter`) and one YAML file: see README "Adding a method".
+network, one `nn.Module` under `NetFitter`) and one YAML file: see docs/adding-a-method.md.
 """
 
 from __future__ import annotations
