@@ -20,6 +20,7 @@ skipped, never mixed in.
 from __future__ import annotations
 
 import csv
+import functools
 import json
 import logging
 import math
@@ -219,6 +220,15 @@ def load_records(root: Path) -> list[tuple[Path, dict]]:
     return out
 
 
+#: the overrides that differ between the folds of one study
+PER_FOLD = ("category", "fold")
+
+
+@functools.lru_cache(maxsize=64)
+def _study_config(overrides: tuple[str, ...]):
+    return run_config(overrides)
+
+
 def current_hash(record: dict) -> str | None:
     """The config hash the code gives the record's run today: its Hydra overrides composed again with
     its category, fold and mesh ids and its data hash. None when the record does not carry them."""
@@ -227,10 +237,12 @@ def current_hash(record: dict) -> str | None:
     tags = record["tags"]
     if "overrides" not in tags or "fold_ids" not in tags:
         return None
-    overrides = json.loads(tags["overrides"])
+    # category and fold are set on the config by fold_identity itself: the rest is what a study's records
+    # share, composed once for them all (results/ composes a dozen times, not once per record)
+    overrides = tuple(o for o in json.loads(tags["overrides"]) if o.lstrip("+").split("=", 1)[0] not in PER_FOLD)
     ids = json.loads(tags["fold_ids"])
     try:
-        cfg = run_config(overrides)
+        cfg = _study_config(overrides)
     except Exception as e:  # an override the code no longer knows: the config changed since
         log.debug("cannot compose %s: %s", overrides, e)
         return "(overrides no longer compose)"

@@ -1,4 +1,5 @@
 import os
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -20,35 +21,70 @@ def require(path: Path) -> Path:
     return path
 
 
+#: fixtures of the tests that train folds (a store of runs, or a run of their own): those tests run first
+HEAVY = {"smoke_store", "store"}
+
+
+def pytest_collection_modifyitems(items):
+    """The tests that train folds first, the rest after, each in file order: pytest-xdist hands tests out one
+    at a time (--maxschedchunk=1 in pyproject), so the two workers share the long ones and the short ones
+    fill the end, where one worker would otherwise wait for the other's last long test."""
+    items.sort(key=lambda item: not HEAVY & set(getattr(item, "fixturenames", ())))
+
+
+def shared_dir(tmp_path_factory) -> Path:
+    """The session's folder common to pytest-xdist's workers (the session's own without xdist)."""
+    base = tmp_path_factory.getbasetemp()
+    return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+
+
+@contextmanager
+def once(tmp_path_factory, name: str):
+    """Make something once for all of the session's workers: the first to get here makes it (the body runs
+    under a file lock) while the others wait."""
+    from filelock import FileLock
+
+    with FileLock(str(shared_dir(tmp_path_factory) / f"{name}.lock")):
+        yield
+
+
 @pytest.fixture(scope="session")
 def cache_dir(tmp_path_factory) -> Path:
-    return tmp_path_factory.mktemp("cache")
+    """The session's feature cache, one for all workers (its files are written atomically): a mesh's features
+    are computed once per session, an archive unpacked once."""
+    path = shared_dir(tmp_path_factory) / "cache"
+    path.mkdir(exist_ok=True)
+    return path
 
 
 @pytest.fixture(scope="session")
-def psb(cache_dir):
+def psb(cache_dir, tmp_path_factory):
     from meshseg.data.datasets import PSB
 
-    return PSB(str(require(PSB_ARCHIVE)), str(cache_dir))
+    with once(tmp_path_factory, "psb"):  # the archive unpacked by one worker
+        return PSB(str(require(PSB_ARCHIVE)), str(cache_dir))
 
 
 @pytest.fixture(scope="session")
-def coseg(cache_dir):
+def coseg(cache_dir, tmp_path_factory):
     from meshseg.data.datasets import COSEG
 
-    return COSEG(str(require(COSEG_ARCHIVE)), str(cache_dir))
+    with once(tmp_path_factory, "coseg"):
+        return COSEG(str(require(COSEG_ARCHIVE)), str(cache_dir))
 
 
 # --- a small MLflow store made by a budget=smoke sweep (report, notebooks, mlflow ui) -------------------
 
 #: run overrides of the smoke store: experiments/synthetic.yaml on 5 meshes per category, 2 folds,
-#: three cheap feature groups, budget=smoke (the same overrides make the report find its runs)
+#: three cheap feature groups, budget=smoke (the same overrides make the report find its runs); one torch
+#: thread, as the two test workers already keep both cores busy (threads are no part of a run's identity)
 SMOKE = [
     "dataset.meshes_per_category=5",
     "features.groups=[curvature,pca,gc]",
     "features.name=local",
     "budget=smoke",
     "split.k=2",
+    "trainer.threads=1",
 ]
 
 
@@ -69,13 +105,8 @@ def smoke_store(tmp_path_factory, cache_dir) -> Path:
     workers share one: the first to need it builds it while the others wait."""
     import shutil
 
-    from filelock import FileLock
-
-    shared = tmp_path_factory.getbasetemp()
-    if os.environ.get("PYTEST_XDIST_WORKER"):
-        shared = shared.parent  # the workers' common folder
-    root = shared / "smoke"
-    with FileLock(str(shared / "smoke.lock")):
+    root = shared_dir(tmp_path_factory) / "smoke"
+    with once(tmp_path_factory, "smoke"):
         if not (root / "built").exists():
             shutil.rmtree(root, ignore_errors=True)  # a build that failed half-way is not reused
             _build_smoke_store(root, cache_dir)

@@ -21,6 +21,7 @@ SMALL = [
     "category=figure",
     "fold=0",
     "tracking.renders=0",
+    "trainer.threads=1",
 ]
 
 

@@ -475,20 +475,23 @@ def test_published_numbers_give_deltas(smoke_store, tmp_path, cache_dir, monkeyp
     assert "/ 50.00 (" in next(line for line in md.splitlines() if line.startswith("| Figure |"))
 
 
-def test_a_deleted_fold_is_incomplete_and_reproduce_launches_only_it(smoke_store, tmp_path, cache_dir):
+def test_a_deleted_fold_is_incomplete_and_reproduce_launches_only_it(smoke_store, tmp_path, cache_dir, monkeypatch):
     """On a copy of the store: delete rf/cup fold 1; the cell and the rf average have no number;
     reproduce (dry run first) launches exactly that run, which gives back the same number."""
     (tmp_path / "mlruns").mkdir()
     shutil.copy(smoke_store / "mlflow.db", tmp_path / "mlruns/mlflow.db")  # artifact paths are absolute
     env = smoke_env(tmp_path, cache_dir)
+    for k, v in env.items():
+        monkeypatch.setenv(k, v)
+    monkeypatch.chdir(REPO)  # where the printed command is pasted (cli runs there)
     args = [str(SYNTH), *SMOKE, f"report.out_dir={tmp_path / 'reports'}"]
-    before = float(cell(read_csv(smoke_report(tmp_path, env, args)), "Cup", "rf")["reproduced"])
+    before = float(cell(read_csv(smoke_report(tmp_path, args)), "Cup", "rf")["reproduced"])
     (victim,) = runs_of(
         tmp_path / "mlruns", filter_string="tags.model = 'rf' and tags.category = 'cup' and tags.fold = '1'"
     )
     MlflowClient(f"sqlite:///{tmp_path}/mlruns/mlflow.db").delete_run(victim.info.run_id)
 
-    rows = read_csv(smoke_report(tmp_path, env, args))
+    rows = read_csv(smoke_report(tmp_path, args))
     c, avg = cell(rows, "Cup", "rf"), cell(rows, "Average", "rf")
     assert (c["status"], c["reproduced"], c["why"], c["folds_missing"]) == (
         "incomplete",
@@ -525,9 +528,9 @@ def test_a_deleted_fold_is_incomplete_and_reproduce_launches_only_it(smoke_store
     assert c["status"] == "ok" and float(c["reproduced"]) == pytest.approx(before, abs=1e-4)  # same seed, same run
 
 
-def smoke_report(tmp_path: Path, env: dict, args: list) -> Path:
-    r = cli("meshseg.report", *args, "report.log=false", env=env)
-    assert r.returncode == 0, r.stderr[-3000:]
+def smoke_report(tmp_path: Path, args: list) -> Path:
+    """The report of `args` (manifest, then overrides), made here (the command line is tested above)."""
+    report(Path(args[0]), [*args[1:], "report.log=false"])
     return tmp_path / "reports/synthetic/table.csv"
 
 

@@ -171,29 +171,49 @@ def test_a_record_name_that_would_leave_results_is_refused_on_import_and_export(
     assert not (tmp_path / "escape_cat").exists()
 
 
-def _import_into(args) -> tuple[int, int]:
-    store, folder = args
-    rep = import_records(tracker(Path(store)), Path(folder))
-    return len(rep.imported), len(rep.present)
+def _import_each(stores: list[str], folder: str, barrier, results) -> None:
+    """One of two importers: `folder` into each store in turn, each import started with the other's."""
+    try:
+        for store in stores:
+            barrier.wait(timeout=600)
+            rep = import_records(tracker(Path(store)), Path(folder))
+            results.put((store, len(rep.imported)))
+    except BaseException as e:
+        barrier.abort()  # the other importer stops waiting
+        results.put(("error", repr(e)))
+        raise
 
 
 def test_two_imports_at_once_make_one_finished_run_per_config(exported, tmp_path):
-    """Defect 3: two imports of one folder into one new store at once made duplicates in 4 of 4 trials."""
+    """Defect 3: two imports of one folder into one new store at once made duplicates in 4 of 4 trials.
+    Two processes import into 5 new stores in turn, both starting each import together (a barrier)."""
     import multiprocessing as mp
 
     out, written, _ = exported
+    stores = [str(tmp_path / f"store{trial}") for trial in range(5)]
+    for store in stores:
+        tracker(Path(store))  # the store exists before the race, as after a first report or sweep
     ctx = mp.get_context("spawn")
-    for trial in range(5):
-        store = tmp_path / f"store{trial}"
-        tracker(store)  # the store exists before the race, as after a first report or sweep
-        with ctx.Pool(2) as pool:
-            results = pool.map(_import_into, [(str(store), str(out))] * 2)
-        finished = tracker(store).runs("attributes.status = 'FINISHED'")
+    barrier, results = ctx.Barrier(2), ctx.Queue()
+    procs = [ctx.Process(target=_import_each, args=(stores, str(out), barrier, results)) for _ in range(2)]
+    for p in procs:
+        p.start()
+    counts = []
+    while len(counts) < 2 * len(stores):
+        store, got = results.get(timeout=900)
+        assert store != "error", got
+        counts.append((store, got))
+    for p in procs:
+        p.join(timeout=60)
+    assert [p.exitcode for p in procs] == [0, 0]
+    for trial, store in enumerate(stores):
+        imported = [n for s, n in counts if s == store]
+        finished = tracker(Path(store)).runs("attributes.status = 'FINISHED'")
         hashes = [r.data.tags["config_hash"] for r in finished]
-        assert len(hashes) == len(set(hashes)) == written, (trial, results)
-        assert sum(i for i, _ in results) == written  # each record imported by exactly one of the two
-        running = tracker(store).client.search_runs(
-            [tracker(store).experiment_id], "attributes.status = 'RUNNING'", run_view_type=3
+        assert len(hashes) == len(set(hashes)) == written, (trial, imported)
+        assert len(imported) == 2 and sum(imported) == written  # each record imported by exactly one of the two
+        running = tracker(Path(store)).client.search_runs(
+            [tracker(Path(store)).experiment_id], "attributes.status = 'RUNNING'", run_view_type=3
         )
         assert running == []  # claims that stepped back ended KILLED (defect 8), none left RUNNING
 

@@ -1,7 +1,8 @@
 """`python -m meshseg.run`: config groups, validation, tracking contract, resume, parallel workers.
 
-Runs use a small synthetic set (5 meshes per category), a cheap feature set and budget=smoke, so a
-run takes seconds; the feature cache is shared by the whole session.
+Runs use a small synthetic set (5 meshes per category), a cheap feature set, budget=smoke and one torch
+thread (the two test workers keep both cores busy), so a run takes seconds; the feature cache is shared by
+the whole session.
 """
 
 import os
@@ -22,7 +23,13 @@ from mlflow import MlflowClient
 from meshseg import CONF_DIR
 from meshseg.tracking import FoldRecord, config_hash, flatten, is_fold_run
 
-SMALL = ["dataset.meshes_per_category=5", "features.groups=[curvature,pca,gc]", "features.name=local", "budget=smoke"]
+SMALL = [
+    "dataset.meshes_per_category=5",
+    "features.groups=[curvature,pca,gc]",
+    "features.name=local",
+    "budget=smoke",
+    "trainer.threads=1",
+]
 
 
 def compose_run(*overrides):
@@ -275,8 +282,8 @@ def test_same_seed_twice_gives_identical_results(store, tmp_path):
 
 
 def test_a_failing_category_is_marked_failed_and_the_others_finish(store, tmp_path):
-    """A COSEG-layout root with two sets; mesh 3 of `tables` is truncated. Every fold of `tables`
-    needs it, so both fail (error text tagged); both folds of `cups` finish; the sweep exits non-zero."""
+    """A COSEG-layout root with two sets of two meshes; mesh 1 of `tables` is truncated. Every fold of
+    `tables` needs it, so both fail (error text tagged); both folds of `cups` finish; the sweep exits non-zero."""
     from meshseg.data.datasets import Synthetic
     from meshseg.data.io import write_off
 
@@ -284,10 +291,10 @@ def test_a_failing_category_is_marked_failed_and_the_others_finish(store, tmp_pa
         root = tmp_path / "coseg" / name
         (root / "shapes").mkdir(parents=True)
         (root / "gt").mkdir()
-        for mesh in Synthetic(categories=[category], meshes_per_category=4, max_faces=4000).meshes(category):
+        for mesh in Synthetic(categories=[category], meshes_per_category=2, max_faces=4000).meshes(category):
             write_off(root / "shapes" / f"{mesh.id}.off", mesh.vertices, mesh.faces)
             (root / "gt" / f"{mesh.id}.seg").write_text("\n".join(str(v + 1) for v in mesh.labels) + "\n")
-    bad = tmp_path / "coseg" / "tables" / "shapes" / "3.off"
+    bad = tmp_path / "coseg" / "tables" / "shapes" / "1.off"
     bad.write_text("\n".join(bad.read_text().splitlines()[:-40]) + "\n")
     r = meshseg_run(
         "dataset=coseg",
@@ -296,6 +303,7 @@ def test_a_failing_category_is_marked_failed_and_the_others_finish(store, tmp_pa
         "split.k=2",
         "features.groups=[curvature,pca,gc]",
         "features.name=local",
+        "trainer.threads=1",
         "-m",
     )
     assert r.returncode != 0
@@ -402,7 +410,6 @@ def test_two_joblib_workers_share_one_sqlite_store(store):
         *SMALL,
         "category=cup",
         "fold=0,2",
-        "trainer.threads=1",
         "hydra/launcher=joblib",
         "hydra.launcher.n_jobs=2",
         "-m",

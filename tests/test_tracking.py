@@ -138,7 +138,7 @@ def test_sigterm_mid_run_ends_the_run_killed(store):
 
     store.mkdir(parents=True, exist_ok=True)
     Tracker(f"sqlite:///{store}/mlflow.db", "meshseg", str(store / "artifacts"))  # made first: polls never race it
-    args = [sys.executable, "-m", "meshseg.run", *SMALL, "category=cup", "fold=0", "trainer.threads=1"]
+    args = [sys.executable, "-m", "meshseg.run", *SMALL, "category=cup", "fold=0"]
     proc = subprocess.Popen(args, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     deadline = time.time() + 300
     while not runs(store, "RUNNING"):
@@ -212,7 +212,7 @@ def test_an_interrupt_during_training_reaches_the_fold_as_an_interrupt():
 
 def test_two_sweeps_of_one_study_at_once_train_each_fold_once(store):
     """Both sweeps start together; every fold is trained by one of them and skipped by the other."""
-    args = [sys.executable, "-m", "meshseg.run", *SMALL, "category=cup", "trainer.threads=1", "-m"]
+    args = [sys.executable, "-m", "meshseg.run", *SMALL, "category=cup", "-m"]
     from conftest import REPO
 
     procs = [

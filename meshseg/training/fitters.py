@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -21,9 +22,9 @@ from meshseg.errors import ConfigError
 from meshseg.models.forest import RandomForest
 from meshseg.models.settings import ForestSettings
 from meshseg.training.context import TrainContext
-from meshseg.training.data import TrainSet
-from meshseg.training.loop import train_stage
-from meshseg.training.module import Segmenter
+
+if TYPE_CHECKING:
+    from meshseg.training.data import TrainSet
 
 
 class Fitter:
@@ -80,6 +81,10 @@ class NetFitter(Fitter):
         self.net, self.optim = net, dict(optim)
 
     def fit(self, train: TrainSet) -> NetFitter:
+        # Lightning is imported to train, not to build: a bad setting is refused before that import (seconds)
+        from meshseg.training.loop import train_stage
+        from meshseg.training.module import Segmenter
+
         ctx = self.context
         net = self.net(n_features=train.X.shape[2], n_classes=train.n_classes, branches=train.X.shape[1])
         if hasattr(net, "fit_frozen"):
