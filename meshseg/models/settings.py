@@ -255,3 +255,49 @@ class ForestSettings(Settings):
         raise self.refuse(
             "max_features", f"choose one of {list(MAX_FEATURES)}, null, an integer >= 1 or a fraction in (0, 1]"
         )
+
+
+GBDT_LIBRARIES = ("lightgbm",)
+
+
+@dataclasses.dataclass(frozen=True)
+class GbdtSettings(Settings):
+    """Gradient-boosted trees' settings (conf/model/gbdt.yaml `trees:`, meshseg/models/gbdt.py; not in the
+    paper). The YAML gives the reason for each default."""
+
+    prefix: ClassVar[str] = "model.trees"
+
+    library: str = "lightgbm"
+    max_rounds: int = 1000
+    learning_rate: float = 0.1
+    num_leaves: int = 31
+    min_child_samples: int = 20
+    feature_fraction: float = 0.3
+    bagging_fraction: float = 0.8
+    lambda_l2: float = 1.0
+    max_bin: int = 63
+    early_stopping_rounds: int = 30
+    inner_meshes: float = 0.2
+    refit: bool = True
+
+    def __post_init__(self):
+        self._check_choice("library", GBDT_LIBRARIES)
+        self._check_int("max_rounds")
+        self._check_fraction("learning_rate")
+        self._check_int("num_leaves", minimum=2)
+        self._check_int("min_child_samples")
+        self._check_fraction("feature_fraction")
+        self._check_fraction("bagging_fraction")
+        self._check_number("lambda_l2", 0.0)
+        self._check_int("max_bin", minimum=2)
+        self._check_int("early_stopping_rounds")
+        self._check_number("inner_meshes", 0.0, 1.0)
+        if self.inner_meshes == 0.0:
+            raise self.refuse("inner_meshes", "it must be a fraction in (0, 1): the meshes early stopping holds out")
+        self._check_bool("refit")
+
+    def _check_fraction(self, name: str) -> None:
+        value = getattr(self, name)
+        if not (isinstance(value, numbers.Real) and not isinstance(value, bool) and 0 < value <= 1):
+            raise self.refuse(name, "it must be a number in (0, 1]")
+        self._store(name, float(value))

@@ -132,6 +132,10 @@ class TrainSet:
     #: budget.resample=epoch: epoch e trains on rows epoch_rows[e] of X (X holds every face any epoch
     #: draws); None: every epoch trains on all of X
     epoch_rows: tuple[np.ndarray, ...] | None = None
+    #: (n,) the training mesh each row comes from, as its position in the fold's training list (a fitter that
+    #: holds meshes out of its training faces, as gbdt's early stopping does, splits by it)
+    mesh_index: np.ndarray | None = None
+    mesh_ids: tuple[str, ...] = ()  # the fold's training meshes, in that order
 
     @property
     def samples_per_epoch(self) -> int:
@@ -162,7 +166,7 @@ def build_train(
     (budget.resample=epoch), each epoch gets its own sample of `faces_per_mesh` faces per mesh: X holds
     the union of the epochs' samples (standardised on it) and `epoch_rows` says which rows each trains on."""
     rng = np.random.default_rng(seed)
-    xs, ys, total, per_epoch, offset = [], [], 0, [[] for _ in range(epochs or 0)], 0
+    xs, ys, which, total, per_epoch, offset = [], [], [], 0, [[] for _ in range(epochs or 0)], 0
     for i, mesh_id in enumerate(mesh_ids):
         mesh, scales = source.load(mesh_id)
         if epochs is None:
@@ -175,6 +179,7 @@ def build_train(
             offset += len(idx)
         xs.append(np.stack([X[idx] for X in scales], axis=1))
         ys.append(mesh.labels[idx])
+        which.append(np.full(len(idx), i, dtype=np.int32))
         total += mesh.n_faces
     with source.timings("standardise"):
         X = np.concatenate(xs)
@@ -182,7 +187,8 @@ def build_train(
         X = standardiser.transform(X)
     n_classes = len(source.dataset.label_names(source.category))
     epoch_rows = None if epochs is None else tuple(np.concatenate(rows) for rows in per_epoch)
-    return TrainSet(X, np.concatenate(ys).astype(np.int64), standardiser, total, n_classes, epoch_rows)
+    y = np.concatenate(ys).astype(np.int64)
+    return TrainSet(X, y, standardiser, total, n_classes, epoch_rows, np.concatenate(which), tuple(mesh_ids))
 
 
 def iter_test_inputs(source: FeatureSource, mesh_ids, standardiser: Standardiser) -> Iterator[tuple[Mesh, np.ndarray]]:

@@ -20,7 +20,8 @@ from torch import nn
 
 from meshseg.errors import ConfigError
 from meshseg.models.forest import RandomForest
-from meshseg.models.settings import ForestSettings
+from meshseg.models.gbdt import GradientBoostedTrees
+from meshseg.models.settings import ForestSettings, GbdtSettings
 from meshseg.training.context import TrainContext
 
 if TYPE_CHECKING:
@@ -122,6 +123,31 @@ class ForestFitter(Fitter):
 
     def predict_proba(self, X: np.ndarray) -> np.ndarray:
         return self.forest_.predict_proba(X)
+
+
+class GbdtFitter(Fitter):
+    """Gradient-boosted trees (gbdt, not in the paper) on the standardised features of the training faces,
+    X^1..X^B concatenated. `trees`: GbdtSettings. Early stopping holds out whole training meshes; after `fit`,
+    `inner_meshes_` names them and `rounds_` is the number of boosting rounds kept."""
+
+    epochs_trained = False
+
+    def __init__(self, trees: dict, context: TrainContext):
+        super().__init__(context)
+        self.trees = dict(trees)
+        GbdtSettings.of(self.trees)  # checked when the method is built
+
+    def fit(self, train: TrainSet) -> GbdtFitter:
+        ctx = self.context
+        self.trees_ = GradientBoostedTrees(train.n_classes, n_jobs=ctx.threads or -1, seed=ctx.seed, **self.trees)
+        self.trees_.fit(train.X, train.y, train.mesh_index)
+        self.inner_meshes_ = tuple(train.mesh_ids[i] for i in self.trees_.inner_)
+        self.rounds_ = self.trees_.rounds_
+        self.parts_, self.epochs_ = {"trees": self.trees_}, 1
+        return self
+
+    def predict_proba(self, X: np.ndarray) -> np.ndarray:
+        return self.trees_.predict_proba(X)
 
 
 def build_fitter(model_cfg, context: TrainContext) -> Fitter:
