@@ -11,6 +11,7 @@ network, one `nn.Module` under `NetFitter`) and one YAML file: see docs/adding-a
 from __future__ import annotations
 
 import dataclasses
+import logging
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
@@ -26,6 +27,8 @@ from meshseg.training.context import TrainContext
 
 if TYPE_CHECKING:
     from meshseg.training.data import TrainSet
+
+log = logging.getLogger("meshseg.training")
 
 
 class Fitter:
@@ -143,6 +146,7 @@ class GbdtFitter(Fitter):
         self.trees_.fit(train.X, train.y, train.mesh_index)
         self.inner_meshes_ = tuple(train.mesh_ids[i] for i in self.trees_.inner_)
         self.rounds_ = self.trees_.rounds_
+        log.info("gbdt: %d rounds, chosen on held-out training meshes %s", self.rounds_, ", ".join(self.inner_meshes_))
         self.parts_, self.epochs_ = {"trees": self.trees_}, 1
         return self
 
