@@ -1,9 +1,9 @@
 """`python -m meshseg.reproduce MANIFEST [overrides]`: launch the runs a manifest still lacks, then
 write its report.
 
-    python -m meshseg.reproduce experiments/table2_psb_5fold.yaml budget=cpu
-    python -m meshseg.reproduce experiments/table2_psb_5fold.yaml budget=cpu report.sets=[Teddy] report.dry_run=true
-    python -m meshseg.reproduce experiments/table2_psb_5fold.yaml budget=cpu report.columns=[3B,1B,ToG15]
+    python -m meshseg.reproduce experiments/table2_psb_5fold.yaml
+    python -m meshseg.reproduce experiments/table2_psb_5fold.yaml report.sets=[Teddy] report.dry_run=true
+    python -m meshseg.reproduce experiments/table2_psb_5fold.yaml report.columns=[3B,1B,ToG15]
     python -m meshseg.reproduce experiments/table1_psb_loo.yaml hydra/launcher=joblib   # parallel folds
 
 Every (column, set) with folds missing becomes one `python -m meshseg.run -m` sweep over exactly those

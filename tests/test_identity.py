@@ -71,3 +71,18 @@ def test_a_knob_at_its_hash_default_keeps_the_hash_and_any_other_value_moves_it(
     assert identity(["dataset=psb", "budget=cpu", "budget.resample=fold", "split.seed=null"], "Airplane") == base
     assert identity(["dataset=psb", "budget=cpu", "budget.resample=epoch"], "Airplane") != base
     assert identity(["dataset=psb", "budget=cpu", "split.seed=1"], "Airplane") != base
+
+
+def test_budget_cpu2_is_cpu_trained_in_bf16_and_a_run_of_its_own():
+    """cpu2 (the budget study's adoption) sets trainer.precision through budget.precision; cpu's runs keep their
+    identity, and a cpu2 run is neither a cpu run nor the study's `cpu` + `trainer.precision=bf16-mixed` run."""
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cpu2, cpu = compose("run", overrides=["dataset=psb", "budget=cpu2"]), compose("run", overrides=["dataset=psb"])
+    assert (cpu2.trainer.precision, cpu.trainer.precision) == ("bf16-mixed", "32-true")
+    assert {k: v for k, v in cpu2.budget.items() if k not in ("name", "precision")} == {
+        k: v for k, v in cpu.budget.items() if k != "name"
+    }
+    base = identity(["dataset=psb", "budget=cpu"], "Airplane")
+    moved = identity(["dataset=psb", "budget=cpu2"], "Airplane")
+    study = identity(["dataset=psb", "budget=cpu", "trainer.precision=bf16-mixed"], "Airplane")
+    assert len({base, moved, study}) == 3 and base == HASHES["cnn1d 3B cpu psb"]

@@ -1,7 +1,7 @@
 """The report: a manifest's table rebuilt from the logged runs and set beside the published numbers
 (Markdown, LaTeX, HTML, CSV, PNG under reports/<manifest>/), itself logged as an MLflow run.
 
-    python -m meshseg.report experiments/table2_psb_5fold.yaml budget=cpu
+    python -m meshseg.report experiments/table2_psb_5fold.yaml
 
 Modules: manifest (experiments/*.yaml), runs (the fold runs of a store, or of results/ records, as one per-mesh
 frame), cells (the table's values), aggregate (cells, averages, bootstrap and paired blocks from the frame), table

@@ -1,8 +1,8 @@
 """`python -m meshseg.report MANIFEST [overrides]`: a manifest's table rebuilt from the logged runs, set beside
 the published numbers, written under <report.out_dir>/<manifest name>/ and logged as an MLflow run.
 
-    python -m meshseg.report experiments/table2_psb_5fold.yaml budget=cpu
-    python -m meshseg.report experiments/table2_psb_5fold.yaml budget=cpu report.sets=[Teddy] report.metric=acc_raw
+    python -m meshseg.report experiments/table2_psb_5fold.yaml
+    python -m meshseg.report experiments/table2_psb_5fold.yaml report.sets=[Teddy] report.metric=acc_raw
     python -m meshseg.report experiments/claims.yaml    # does the paper reproduce? every claim judged (reports/claims/)
 
 `report.*` settings: conf/report.yaml. Every other override is a run override (budget=cpu, tracking.uri=...,

@@ -104,6 +104,7 @@ class _Planner:
         """What budget `b` trains on, under its name; columns that override part of one budget (a study's
         budget.faces_per_mesh=4000) add their own text beside the others, so the header names every one."""
         text = f"{b.faces_per_mesh or 'every'} training faces per mesh, {b.epochs} epoch{'s' if b.epochs != 1 else ''}"
+        text += f", {b.precision}" if b.get("precision") else ""  # cpu2: the 1D CNN in bf16-mixed
         texts = self.budget_text
         if text not in texts.get(b.name, "").split(" | "):
             texts[b.name] = f"{texts[b.name]} | {text}" if b.name in texts else text
