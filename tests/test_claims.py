@@ -47,6 +47,13 @@ def claim(test="mean", **kw) -> Claim:
 RNG = np.random.default_rng(0)
 
 
+@pytest.fixture(autouse=True)
+def fresh_rng():
+    """Each test draws the same numbers whatever ran before it (xdist changes the order)."""
+    global RNG
+    RNG = np.random.default_rng(0)
+
+
 def noisy(center: float, n: int = 20) -> tuple[list[float], list[float]]:
     b = RNG.uniform(80, 95, n)
     return list(b + center + RNG.normal(0, 0.3, n)), list(b)

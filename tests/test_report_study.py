@@ -172,6 +172,8 @@ def test_the_manifests_pairs_make_one_block_each_and_report_paired_replaces_them
     assert [(p.a.key, p.b.key) for p in table.pairs] == [("C", "B"), ("A", "B")]
     table, files, _ = report(path, [*args, "report.paired=[]", f"report.out_dir={tiny / 'none'}"])
     assert table.pairs == () and not (tiny / "none/study/paired.csv").exists()
+    report(path, [*args, "report.paired=[]", f"report.out_dir={tiny / 'out'}"])  # over a report that had them
+    assert not (tiny / "out/study/paired.csv").exists()  # no stale blocks of other runs left beside the table
     # report.columns: a pair loses its block with either of its columns
     table, _, _ = report(path, [*args, "report.columns=[C,B]", f"report.out_dir={tiny / 'cols'}"])
     assert [(p.a.key, p.b.key) for p in table.pairs] == [("C", "B")]

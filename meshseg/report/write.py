@@ -375,6 +375,10 @@ def png_bytes(fig, dpi: int = 110) -> bytes:
     return buf.getvalue()
 
 
+#: files a report writes only when it has their content (paired blocks, a learning curve, refined runs)
+OPTIONAL_FILES = frozenset({"paired.csv", "learning_curve.png", "refinement.csv"})
+
+
 def write_report(table: Table, out_dir: str | Path) -> list[Path]:
     """Write every format into out_dir (created); each file is written whole or not at all."""
     out = Path(out_dir)
@@ -392,6 +396,8 @@ def write_report(table: Table, out_dir: str | Path) -> list[Path]:
         contents["learning_curve.png"] = png_bytes(learning_curve_figure(table))
     if _has_refinement(table):
         contents["refinement.csv"] = refinement_csv(table)
+    for name in OPTIONAL_FILES.difference(contents):  # one an earlier report wrote would describe other runs
+        (out / name).unlink(missing_ok=True)
     return write_files(out, contents)
 
 
