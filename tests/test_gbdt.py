@@ -54,6 +54,8 @@ def test_early_stopping_holds_out_training_meshes_only(source):  # noqa: F811
     assert len(inner) == 1 and np.array_equal(inner, inner_split(groups, 0.2, seed=0))
     assert {tuple(inner_split(groups, 0.5, seed=s)) for s in range(6)} != {tuple(inner)}  # seeded, not fixed
     assert len(inner_split(np.array([0, 0, 1]), 0.99, 0)) == 1  # one mesh is always left to train on
+    with pytest.raises(ConfigError, match="model=gbdt needs at least 2 training meshes"):
+        inner_split(np.zeros(5, int), 0.2, 0)
 
 
 def test_multi_scale_inputs_are_concatenated_and_absent_classes_get_zero():

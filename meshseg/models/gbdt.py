@@ -1,4 +1,4 @@
-"""Gradient-boosted trees (not in the paper; issue "beyond the paper"): LightGBM multiclass over per-face
+"""Gradient-boosted trees (not in the paper: docs/deviations.md, G1): LightGBM multiclass over per-face
 inputs, X^1..X^B concatenated, giving a probability column for every class of the category. The modern
 descendant of Kalogerakis et al. 2010's JointBoost, on the same features as every other method.
 
@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from meshseg.errors import ConfigError
 from meshseg.models.settings import GbdtSettings
 
 
@@ -20,7 +21,7 @@ def inner_split(groups: np.ndarray, fraction: float, seed: int) -> np.ndarray:
     least 1 and leaving at least 1 to train on, drawn by a generator seeded with `seed`; sorted."""
     meshes = np.unique(groups)
     if len(meshes) < 2:
-        raise ValueError("early stopping needs at least 2 training meshes to hold one out")
+        raise ConfigError("model=gbdt needs at least 2 training meshes: early stopping holds whole meshes out")
     k = min(max(1, round(fraction * len(meshes))), len(meshes) - 1)
     return np.sort(np.random.default_rng([seed, 29]).choice(meshes, size=k, replace=False))
 
