@@ -20,12 +20,11 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-import scipy.sparse as sp
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from meshseg.features.rings import ring_means, step_matrix  # noqa: E402
+from meshseg.features.rings import neighbourhoods, ring_means  # noqa: E402
 
 STUDY_SETS = ["Vase", "Cup", "Hand", "FourLeg", "Chair", "Airplane"]
 
@@ -39,11 +38,8 @@ def ring_information(V: np.ndarray, F: np.ndarray, X: np.ndarray, scales: int, a
     keep = sd > 1e-12 * (1 + np.abs(X).max(axis=0))  # constant columns carry nothing at any scale
     Z = (X[:, keep] - X[:, keep].mean(axis=0)) / sd[keep]
     means = ring_means(Z, F, scales, adjacency)
-    step, reach = step_matrix(F, adjacency), sp.identity(len(F), format="csr")
     out = []
-    for k in range(2, scales + 1):
-        reach = reach @ step
-        reach.data[:] = 1.0
+    for k, reach in enumerate(neighbourhoods(F, scales, adjacency), start=2):
         coo = reach.tocoo()
         far = np.zeros(len(F))
         np.maximum.at(far, coo.row, np.linalg.norm(centres[coo.row] - centres[coo.col], axis=1))

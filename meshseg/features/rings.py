@@ -26,15 +26,22 @@ def step_matrix(F: np.ndarray, adjacency: str = "edge") -> sp.csr_matrix:
     return a
 
 
-def ring_means(X: np.ndarray, F: np.ndarray, scales: int, adjacency: str = "edge") -> list[np.ndarray]:
-    """[X^1, ..., X^scales], each (F, d) float32. N^k grows by one step per scale (sparse products,
-    no loop over faces)."""
+def neighbourhoods(F: np.ndarray, scales: int, adjacency: str = "edge") -> list[sp.csr_matrix]:
+    """[N^2, ..., N^scales] as F x F 0/1 matrices (row u: the faces at most k-1 steps from u). N^k grows by one
+    step per scale (sparse products, no loop over faces)."""
     step = step_matrix(F, adjacency)
-    out = [np.asarray(X, np.float32)]
-    reach = sp.identity(len(F), format="csr")
+    out, reach = [], sp.identity(len(F), format="csr")
     for _ in range(1, scales):
         reach = reach @ step
         reach.data[:] = 1.0  # membership, not path counts
+        out.append(reach)
+    return out
+
+
+def ring_means(X: np.ndarray, F: np.ndarray, scales: int, adjacency: str = "edge") -> list[np.ndarray]:
+    """[X^1, ..., X^scales], each (F, d) float32: X averaged over each N^k (`neighbourhoods`)."""
+    out = [np.asarray(X, np.float32)]
+    for reach in neighbourhoods(F, scales, adjacency):
         counts = np.asarray(reach.sum(axis=1)).ravel()
         out.append(np.asarray((reach.astype(np.float32) @ out[0]) / counts[:, None].astype(np.float32), np.float32))
     return out

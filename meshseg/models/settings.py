@@ -103,6 +103,13 @@ class Settings:
             raise self.refuse(name, f"it must be a number {rule}")
         self._store(name, float(value))
 
+    def _check_fraction(self, name: str) -> None:
+        """A number in (0, 1]."""
+        value = getattr(self, name)
+        if not (isinstance(value, numbers.Real) and not isinstance(value, bool) and 0 < value <= 1):
+            raise self.refuse(name, "it must be a number in (0, 1]")
+        self._store(name, float(value))
+
     def _check_choice(self, name: str, options: Sequence[str]) -> None:
         if getattr(self, name) not in options:
             raise self.refuse(name, f"choose one of {list(options)}")
@@ -295,9 +302,3 @@ class GbdtSettings(Settings):
         if self.inner_meshes == 0.0:
             raise self.refuse("inner_meshes", "it must be a fraction in (0, 1): the meshes early stopping holds out")
         self._check_bool("refit")
-
-    def _check_fraction(self, name: str) -> None:
-        value = getattr(self, name)
-        if not (isinstance(value, numbers.Real) and not isinstance(value, bool) and 0 < value <= 1):
-            raise self.refuse(name, "it must be a number in (0, 1]")
-        self._store(name, float(value))
