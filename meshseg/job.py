@@ -192,7 +192,13 @@ def build_method(cfg: DictConfig) -> Method:
     from meshseg.training.fitters import build_fitter
 
     fitter = build_fitter(cfg.model, TrainContext.from_config(cfg.budget, cfg.trainer, cfg.seed))
-    return Method(build_split(cfg.split), FeatureSet.from_config(cfg.features), fitter, build_refinement(cfg.refine))
+    refinement = build_refinement(cfg.refine)
+    if refinement.search is not None and not fitter.holds_out_meshes:
+        raise ConfigError(
+            f"refine.search is not allowed with model={cfg.model.name}: it chooses on training meshes the model "
+            "holds out and predicts without them, as model=gbdt does"
+        )
+    return Method(build_split(cfg.split), FeatureSet.from_config(cfg.features), fitter, refinement)
 
 
 def checkpoint_dir(cfg: DictConfig, config_hash: str) -> Path | None:

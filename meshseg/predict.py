@@ -67,9 +67,13 @@ class FoldModel:
         (folder / self.ABOUT).write_text(yaml.safe_dump(readable, sort_keys=False))
 
     @classmethod
-    def of_fold(cls, config: dict, preds, label_names, about: dict) -> FoldModel:
+    def of_fold(cls, config: dict, preds, label_names, about: dict, chosen: dict | None = None) -> FoldModel:
         """The model `meshseg.run` trained on one fold (`config`: the run's resolved config; `preds`: its
-        `FoldPredictions`; `about`: where it came from)."""
+        `FoldPredictions`; `about`: where it came from; `chosen`: the refinement settings refine.search
+        chose for the fold, which the model then refines with)."""
+        refine = dict(config["refine"])
+        if chosen:
+            refine.update(chosen, search=None)
         return cls(
             preds.fitter,
             preds.standardiser,
@@ -77,7 +81,7 @@ class FoldModel:
             config["features"],
             int(config["branches"]),
             str(config["ring_adjacency"]),
-            config["refine"],
+            refine,
             dict(about),
         )
 

@@ -90,13 +90,19 @@ def run(cfg: DictConfig) -> FoldOutcome:
                 logger=tracker.lightning_logger(run_id),
                 checkpoint_dir=job.checkpoints and str(job.checkpoints),
             )
-            preds = fit_predict(source, fitter, job.faces_per_mesh, job.workers)
+            refine = job.refinement
+            preds = fit_predict(source, fitter, job.faces_per_mesh, job.workers, refine.search is not None)
             timings = Timings(preds.timings)
+            chosen, searched = {}, {}
+            if refine.search is not None:  # its settings chosen on held-out training meshes, never a test mesh
+                with timings("refine_search"):
+                    found = search_refinement(refine, preds, source, tracker, run_id)
+                refine, chosen = found.chosen, found.settings
+                searched = {**{f"refine/{k}": float(v) for k, v in chosen.items()}, "refine/held_out_acc": found.score}
             # refine: the refinement's own per-mesh inputs (e.g. AGD) come from the feature cache
             log.info("refining %d test meshes (%s)", len(preds.meshes), key.refine)
             with timings("refine"):
                 raw = [p.argmax(axis=1) for p in preds.probabilities]
-                refine = job.refinement
                 labels = [
                     refine(m, p, source.groups(m, refine.needs)) for m, p in zip(preds.meshes, preds.probabilities)
                 ]
@@ -109,6 +115,7 @@ def run(cfg: DictConfig) -> FoldOutcome:
                 * preds.counts["epochs"]
                 / preds.timings["train"],
                 "speed/predict_faces_per_s": preds.counts["test_faces"] / max(preds.timings.get("predict", 0.0), 1e-9),
+                **searched,
             }
             # record (the timings last, so that they include the recording itself)
             log.info("logging predictions%s", ", the model" if t["log_model"] else "")
@@ -120,7 +127,7 @@ def run(cfg: DictConfig) -> FoldOutcome:
                 if t["log_model"]:  # an MLflow logged model (meshseg.pyfunc), which meshseg.predict reads too
                     about = {"run_id": run_id, **{k: job.tags[k] for k in ABOUT_MODEL}}
                     label_names = job.dataset.label_names(key.category)
-                    model = FoldModel.of_fold(job.config, preds, label_names, about)
+                    model = FoldModel.of_fold(job.config, preds, label_names, about, chosen)
                     model_id = log_fold_model(tracker, run_id, model, job.cache_dir)
             if renders := int(t["renders"] or 0):
                 log.info("rendering %d test meshes", min(renders, len(preds.meshes)))
@@ -141,6 +148,35 @@ def run(cfg: DictConfig) -> FoldOutcome:
     )
     job_done(time.perf_counter() - start)
     return FoldOutcome(key.category, key.fold, acc, False)
+
+
+def search_refinement(refine, preds, source, tracker, run_id: str):
+    """The search of `refine.search`'s grid (meshseg.refine.search.SearchResult): the grid point that scores
+    best (the paper's accuracy, mean over the meshes) on the training meshes the fitter held out, refined
+    from the probabilities of the model fitted without them. The whole grid's scores go to the run as
+    `refine_search.json`."""
+    from meshseg.metrics import area_weighted_accuracy
+    from meshseg.refine.search import choose
+
+    meshes = preds.held_out
+    features = [source.groups(m, refine.needs) for m in meshes]
+    found = choose(
+        refine,
+        meshes,
+        preds.held_out_probabilities,
+        features,
+        lambda m, labels: area_weighted_accuracy(labels, m.labels, m.face_areas),
+    )
+    log.info(
+        "refine.search: %s chosen on %d held-out training meshes (%s): accuracy %.4f, best of %d grid points",
+        found.settings,
+        len(meshes),
+        ", ".join(m.id for m in meshes),
+        found.score,
+        len(found.table),
+    )
+    tracker.log_json(run_id, "refine_search.json", {"held_out": [m.id for m in meshes], "grid": found.table})
+    return found
 
 
 def setup_process(trainer: DictConfig) -> None:

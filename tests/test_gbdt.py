@@ -2,6 +2,9 @@
 stopping on whole training meshes held out. Five small synthetic figures, a cheap feature set, budget=smoke."""
 
 import dataclasses
+import json
+import pickle
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,6 +15,7 @@ from meshseg.data.splits import Fold
 from meshseg.errors import ConfigError
 from meshseg.models.gbdt import GradientBoostedTrees, inner_split
 from meshseg.training.context import TrainContext
+from meshseg.training.data import iter_test_inputs
 from meshseg.training.fit import fit_predict
 from meshseg.training.fitters import build_fitter
 
@@ -46,7 +50,7 @@ def test_same_seed_same_probabilities_and_the_seed_matters(source):  # noqa: F81
 def test_early_stopping_holds_out_training_meshes_only(source):  # noqa: F811
     for seed in range(4):
         (preds, fitter) = fit(source, ("0",), seed, "model.trees.inner_meshes=0.5")
-        held = set(fitter.inner_meshes_)
+        held = set(fitter.held_out_)
         assert len(held) == 2 and held <= set(TRAIN) and "0" not in held  # never the test mesh
     # the split is by mesh: every row of a held-out mesh is held out, none of the others
     groups = np.repeat(np.arange(6), 10)
@@ -76,3 +80,59 @@ def test_bad_tree_settings_are_refused_when_built():
     ]:
         with pytest.raises(ConfigError, match=f"{bad.split('=')[0]}=.* is not allowed: .*{rule}"):
             build_fitter(compose_run("model=gbdt", bad).model, ctx)
+
+
+def test_held_out_meshes_are_predicted_by_the_trees_grown_without_them(source):  # noqa: F811
+    """refine.search chooses on the held-out meshes' probabilities: those of the early-stopped trees, which
+    never saw them (not the refitted ones, which did); without refit the two are one model."""
+    (preds, fitter), (same, plain) = fit(source), fit(source, ("0",), 0, "model.trees.refit=false")
+    mesh_id = fitter.held_out_[0]
+    _, X = next(iter_test_inputs(preds_source(source), [mesh_id], preds.standardiser))
+    inner, refitted = fitter.predict_held_out(X), fitter.predict_proba(X)
+    assert inner.shape == refitted.shape and not np.allclose(inner, refitted)
+    _, X = next(iter_test_inputs(preds_source(source), [plain.held_out_[0]], same.standardiser))
+    np.testing.assert_array_equal(plain.predict_held_out(X), plain.predict_proba(X))
+    # the saved model keeps only the trees it predicts test meshes with
+    restored = pickle.loads(pickle.dumps(fitter))
+    np.testing.assert_array_equal(restored.predict_proba(X), fitter.predict_proba(X))
+    with pytest.raises(RuntimeError, match="not kept in a saved model"):
+        restored.predict_held_out(X)
+
+
+def preds_source(source):  # noqa: F811
+    return dataclasses.replace(source, fold=Fold(0, TRAIN, ("0",)), branches=3)
+
+
+def test_refine_search_chooses_on_held_out_training_meshes_through_meshseg_run(tmp_path, cache_dir):
+    """model=gbdt with refine.search: the settings are chosen per fold on the held-out training meshes (never
+    the test mesh), recorded as run metrics and refine_search.json, and the logged model refines with them."""
+    from meshseg.predict import load_run_model
+    from meshseg.run import run
+    from meshseg.tracking import Tracker
+
+    store = [f"paths.mlflow_dir={tmp_path}/mlruns", f"paths.log_dir={tmp_path}/logs", f"paths.cache_dir={cache_dir}"]
+    grid = "refine.search={lam:[0.0,2.0],omega:[0.0,2.0]}"
+    run(compose_run(*SMALL, "model=gbdt", "fold=0", grid, *store))
+    client, (r,) = finished(store, "gbdt")
+    m, fold = r.data.metrics, json.loads(r.data.tags["fold_ids"])
+    assert m["refine/lam"] in (0.0, 2.0) and m["refine/omega"] in (0.0, 2.0)
+    searched = json.loads(
+        Path(client.download_artifacts(r.info.run_id, "refine_search.json", str(tmp_path))).read_text()
+    )
+    assert searched["held_out"] and set(searched["held_out"]) <= set(fold["train"])
+    assert not set(searched["held_out"]) & set(fold["test"])  # never a test mesh
+    rows = searched["grid"]
+    assert [(g["lam"], g["omega"]) for g in rows] == [(0.0, 0.0), (0.0, 2.0), (2.0, 0.0), (2.0, 2.0)]
+    best = max(rows, key=lambda g: g["score"])  # the first of equals
+    assert (best["lam"], best["omega"]) == (m["refine/lam"], m["refine/omega"])
+    assert np.isclose(m["refine/held_out_acc"], best["score"]) and len(best["per_mesh"]) == len(searched["held_out"])
+    # the fold's model refines a new mesh with the chosen settings, searching nothing
+    model, _ = load_run_model(Tracker(f"sqlite:///{tmp_path}/mlruns/mlflow.db", "meshseg"), r.info.run_id)
+    assert (model.refine["lam"], model.refine["omega"], model.refine["search"]) == (best["lam"], best["omega"], None)
+
+
+def test_refine_search_is_refused_for_a_model_that_holds_no_meshes_out():
+    from meshseg.job import build_method
+
+    with pytest.raises(ConfigError, match="refine.search is not allowed with model=cnn1d: it chooses on training"):
+        build_method(compose_run(*SMALL, "model=cnn1d", "refine.search={lam:[1.0,2.0]}"))

@@ -286,3 +286,43 @@ def test_methods_and_configs():
 def test_a_bad_setting_is_refused_when_the_refinement_is_built(name, key, value):
     with pytest.raises(ValueError, match=rf"refine.{key}={value} is not allowed with refine={name}: it must be"):
         build_refinement(conf(name, **{key: value}))
+
+
+# --- refine.search: settings chosen on held-out meshes (meshseg/refine/search.py) ------------------------
+
+
+def test_search_chooses_the_best_grid_point_and_the_first_of_equals(noisy_cup):
+    from meshseg.refine.search import choose
+
+    mesh, P, agd = noisy_cup
+    refinement = build_refinement(conf("graphcut_agd", search={"lam": [0.0, 2.0], "omega": [2.0, 0.0]}))
+    acc = lambda m, labels: area_weighted_accuracy(labels, m.labels, m.face_areas)  # noqa: E731
+    found = choose(refinement, [mesh, mesh], [P, P], [agd, agd], acc)
+    assert [(r["lam"], r["omega"]) for r in found.table] == [(0.0, 2.0), (0.0, 0.0), (2.0, 2.0), (2.0, 0.0)]
+    raw = acc(mesh, P.argmax(1))
+    assert found.table[0]["score"] == found.table[1]["score"] == raw  # lam 0: the argmax, whatever omega
+    assert (
+        found.settings["lam"] == 2.0 and found.score > raw + 0.1 and found.score == max(r["score"] for r in found.table)
+    )
+    assert found.chosen.lam == 2.0 and found.chosen.search is None and found.chosen.omega == found.settings["omega"]
+    assert found.table[2]["per_mesh"] == [found.table[2]["score"]] * 2
+    same = choose(refinement, [mesh], [P], [agd], lambda m, labels: 0.5)  # all equal: the grid's first
+    assert same.settings == {"lam": 0.0, "omega": 2.0}
+
+
+@pytest.mark.parametrize(
+    "grid, message",
+    [
+        ({"lamb": [1.0]}, r"refine.search.lamb is not allowed with refine=graphcut_agd: it takes convex_factor, eps"),
+        ({"lam": []}, r"refine.search.lam=\[\] is not allowed: it must be a non-empty list"),
+        ({"lam": 2.0}, r"refine.search.lam=2.0 is not allowed: it must be a non-empty list"),
+        (
+            {"lam": [1.0, -1.0]},
+            r"refine.search \{'lam': -1.0\}: refine.lam=-1.0 is not allowed with refine=graphcut_agd",
+        ),
+        ({}, r"refine.search=\{\} is not allowed: give settings with lists of values"),
+    ],
+)
+def test_a_bad_search_grid_is_refused_when_the_refinement_is_built(grid, message):
+    with pytest.raises(ValueError, match=message):
+        build_refinement(conf("graphcut_agd", search=grid))

@@ -32,7 +32,9 @@ class GradientBoostedTrees:
     Deterministic for a given seed and thread count (LightGBM's `deterministic`, row-wise histograms).
 
     After `fit`: `inner_` the held-out meshes, `rounds_` the rounds early stopping chose, `curve_` the
-    held-out multi-class log loss per round."""
+    held-out multi-class log loss per round. `predict_proba(X, held_out=True)` predicts with the trees
+    grown without the held-out meshes (for choosing what comes after the model on them, e.g. the
+    refinement's settings); a saved model keeps only the trees it predicts test meshes with."""
 
     def __init__(self, n_classes: int, n_jobs: int | None = 1, seed: int = 0, **settings):
         """`settings`: GbdtSettings' fields (meshseg/models/settings.py), as conf/model/gbdt.yaml gives them."""
@@ -80,6 +82,7 @@ class GradientBoostedTrees:
         self.n_present_ = len(self.classes_)
         if self.n_present_ == 1:  # one class: nothing to learn
             self.booster_, self.inner_, self.rounds_, self.curve_ = None, np.array([], int), 0, []
+            self.inner_booster_ = None
             return self
         code = np.searchsorted(self.classes_, y)
         self.inner_ = inner_split(groups, self.settings.inner_meshes, self.seed)
@@ -88,13 +91,22 @@ class GradientBoostedTrees:
         self.rounds_ = int(booster.best_iteration or booster.current_iteration())
         self.curve_ = next(iter(next(iter(record.values())).values())) if record else []
         self.booster_ = self._train(X, code, self.rounds_)[0] if self.settings.refit else booster
+        self.inner_booster_ = booster
         return self
 
-    def predict_proba(self, X: np.ndarray) -> np.ndarray:
+    def predict_proba(self, X: np.ndarray, held_out: bool = False) -> np.ndarray:
         out = np.zeros((len(X), self.n_classes), dtype=np.float32)
-        if self.booster_ is None:
+        booster = self.inner_booster_ if held_out else self.booster_
+        if held_out and booster is None and self.booster_ is not None:
+            raise RuntimeError("the trees grown without the held-out meshes are not kept in a saved model")
+        if booster is None:
             out[:, self.classes_[0]] = 1.0
             return out
-        p = self.booster_.predict(X.reshape(len(X), -1), num_iteration=self.rounds_)
+        p = booster.predict(X.reshape(len(X), -1), num_iteration=self.rounds_)
         out[:, self.classes_] = p if p.ndim == 2 else np.column_stack([1 - p, p])
         return out
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state["inner_booster_"] = None  # used by the run that fits it, not by the saved model
+        return state

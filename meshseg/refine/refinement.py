@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from omegaconf import OmegaConf
 
 from meshseg.data.mesh import Mesh
 from meshseg.errors import ConfigError
@@ -36,6 +37,7 @@ class Refinement:
 
     name = "refinement"
     needs: tuple[str, ...] = ()  # feature groups read per mesh, in this order, as one (faces, d) array
+    search: dict | None = None  # a grid of its settings to choose from per fold (meshseg/refine/search.py)
 
     def __call__(self, mesh: Mesh, probabilities: np.ndarray, features: np.ndarray | None = None) -> np.ndarray:
         P = np.asarray(probabilities)
@@ -79,6 +81,7 @@ class GraphCut(Refinement):
     convex_factor: float = 0.08
     theta_eps: float = 1e-3
     n_iter: int = -1
+    search: dict | None = None
 
     def __post_init__(self):
         _check(
@@ -156,10 +159,15 @@ class GraphCutAGD(GraphCut):
 def build_refinement(cfg) -> Refinement:
     """The refinement a `conf/refine/*.yaml` node names, its settings checked."""
     from meshseg.instantiate import build
+    from meshseg.refine.search import candidates
 
     refinement = build(cfg, f"refine={cfg.get('name', '?')}")
     if not isinstance(refinement, Refinement):
         raise ConfigError(f"refine={cfg.get('name', '?')}: {cfg._target_} is not a meshseg.refine.Refinement")
+    if refinement.search is not None:  # every grid point checked now, before any fold trains
+        grid = refinement.search
+        refinement.search = OmegaConf.to_container(grid) if OmegaConf.is_config(grid) else dict(grid)
+        candidates(refinement, refinement.search)
     return refinement
 
 

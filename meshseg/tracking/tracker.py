@@ -233,6 +233,10 @@ class Tracker:
                 np.savez_compressed(d / R.PREDICTIONS, **arrays)
                 self.client.log_artifact(run_id, str(d / R.PREDICTIONS))
 
+    def log_json(self, run_id: str, name: str, data) -> None:
+        """`data` as the run's artifact `name` (JSON)."""
+        retry(lambda: self.client.log_dict(run_id, data, name), f"log {name}")
+
     def log_model(self, run_id: str, save, tags: dict) -> str:
         """An MLflow logged model of the run, named FoldRecord.MODEL (the run's Logged models, `runs:/<run id>/model`):
         created here with `tags`, its files written by `save(model_id)` (meshseg.pyfunc, through MLflow's own

@@ -26,12 +26,17 @@ class FoldPredictions:
     parts: dict[str, object] = field(default_factory=dict)  # the fitted model's parts by stage name
     fitter: object | None = None  # the fitted fitter and the standardiser of its inputs: the fold's model
     standardiser: object | None = None
+    held_out: list[Mesh] = field(default_factory=list)  # training meshes the fitter held out (held_out=True)
+    held_out_probabilities: list[np.ndarray] = field(default_factory=list)  # by the model fitted without them
 
 
-def fit_predict(source: FeatureSource, fitter: Fitter, faces_per_mesh: int | None, workers: int = 2) -> FoldPredictions:
+def fit_predict(
+    source: FeatureSource, fitter: Fitter, faces_per_mesh: int | None, workers: int = 2, held_out: bool = False
+) -> FoldPredictions:
     """Features (from the cache or computed), the fitter (built by `build_fitter`, with the run's context)
     fitted on the training meshes of the source's fold (`faces_per_mesh` sampled from each, all when None),
-    then class probabilities for every face of every test mesh.
+    then class probabilities for every face of every test mesh; with `held_out`, also for every face of
+    the training meshes the fitter held out, by the model it fitted without them.
 
     Timings (seconds): `features` (computing what the cache lacks), `mesh` (reading meshes), `load`
     (reading cached features), `rings` (X^1..X^B), `standardise`, `train`, `predict` (the model only)."""
@@ -61,6 +66,11 @@ def fit_predict(source: FeatureSource, fitter: Fitter, faces_per_mesh: int | Non
         meshes.append(mesh)
         with timings("predict"):
             probabilities.append(fitter.predict_proba(X))
+    held = []  # the held-out training meshes and their probabilities (what refine.search chooses on)
+    if held_out:
+        held = [
+            (m, fitter.predict_held_out(X)) for m, X in iter_test_inputs(source, fitter.held_out_, train.standardiser)
+        ]
     counts = {
         "train_samples": train.samples_per_epoch,
         "train_distinct": len(train.y),  # faces any epoch trained on (more than train_samples with resample=epoch)
@@ -68,4 +78,14 @@ def fit_predict(source: FeatureSource, fitter: Fitter, faces_per_mesh: int | Non
         "test_faces": sum(m.n_faces for m in meshes),
         "epochs": fitter.epochs_,
     }
-    return FoldPredictions(meshes, probabilities, dict(timings), counts, fitter.parts_, fitter, train.standardiser)
+    return FoldPredictions(
+        meshes,
+        probabilities,
+        dict(timings),
+        counts,
+        fitter.parts_,
+        fitter,
+        train.standardiser,
+        [m for m, _ in held],
+        [p for _, p in held],
+    )

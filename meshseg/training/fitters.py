@@ -36,6 +36,9 @@ class Fitter:
 
     #: whether it trains epoch by epoch (budget.resample=epoch means something only then)
     epochs_trained = True
+    #: whether `fit` holds whole training meshes out (`held_out_`, their ids), predictable with the model
+    #: fitted without them (`predict_held_out`): what refine.search chooses on
+    holds_out_meshes = False
 
     def __init__(self, context: TrainContext):
         if context.resample == "epoch" and not self.epochs_trained:
@@ -52,6 +55,9 @@ class Fitter:
 
     def predict_proba(self, X: np.ndarray) -> np.ndarray:
         raise NotImplementedError
+
+    def predict_held_out(self, X: np.ndarray) -> np.ndarray:
+        raise NotImplementedError(f"{type(self).__name__} holds no training meshes out")
 
     def __getstate__(self) -> dict:
         # a fitter saved with its run (the model/ artifact) keeps its trained parts, not the run's logger
@@ -131,9 +137,10 @@ class ForestFitter(Fitter):
 class GbdtFitter(Fitter):
     """Gradient-boosted trees (gbdt, not in the paper) on the standardised features of the training faces,
     X^1..X^B concatenated. `trees`: GbdtSettings. Early stopping holds out whole training meshes; after `fit`,
-    `inner_meshes_` names them and `rounds_` is the number of boosting rounds kept."""
+    `held_out_` names them and `rounds_` is the number of boosting rounds kept."""
 
     epochs_trained = False
+    holds_out_meshes = True
 
     def __init__(self, trees: dict, context: TrainContext):
         super().__init__(context)
@@ -144,14 +151,17 @@ class GbdtFitter(Fitter):
         ctx = self.context
         self.trees_ = GradientBoostedTrees(train.n_classes, n_jobs=ctx.threads or -1, seed=ctx.seed, **self.trees)
         self.trees_.fit(train.X, train.y, train.mesh_index)
-        self.inner_meshes_ = tuple(train.mesh_ids[i] for i in self.trees_.inner_)
+        self.held_out_ = tuple(train.mesh_ids[i] for i in self.trees_.inner_)
         self.rounds_ = self.trees_.rounds_
-        log.info("gbdt: %d rounds, chosen on held-out training meshes %s", self.rounds_, ", ".join(self.inner_meshes_))
+        log.info("gbdt: %d rounds, chosen on held-out training meshes %s", self.rounds_, ", ".join(self.held_out_))
         self.parts_, self.epochs_ = {"trees": self.trees_}, 1
         return self
 
     def predict_proba(self, X: np.ndarray) -> np.ndarray:
         return self.trees_.predict_proba(X)
+
+    def predict_held_out(self, X: np.ndarray) -> np.ndarray:
+        return self.trees_.predict_proba(X, held_out=True)
 
 
 def build_fitter(model_cfg, context: TrainContext) -> Fitter:

@@ -1,0 +1,82 @@
+"""A refinement's settings chosen per fold on meshes the model did not train on but that belong to the
+fold's training meshes (e.g. the ones gbdt holds out for early stopping), never on a test mesh.
+
+`refine.search` names a grid, e.g. `{lam: [0.5, 1, 2, 4], omega: [0, 1, 2, 4]}`; every combination is
+tried in grid order and the one with the highest mean score over the held-out meshes wins (the first of
+equals, so the configured values win a tie when they are the grid's first). The score is the caller's
+(the run passes the paper's accuracy): the refinement package does not import the metrics.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from meshseg.data.mesh import Mesh
+from meshseg.errors import ConfigError
+from meshseg.refine.refinement import Refinement
+
+
+def grid_points(refinement: Refinement, grid: dict) -> list[dict]:
+    """Every combination of the grid's values, as settings of `refinement`, in grid order; a key the
+    refinement does not take, or an empty list, is refused."""
+    if not grid:
+        raise ConfigError(f"refine.search={grid} is not allowed: give settings with lists of values")
+    fields = {f.name for f in dataclasses.fields(refinement)} if dataclasses.is_dataclass(refinement) else set()
+    for key, values in grid.items():
+        if key not in fields or key == "search":
+            raise ConfigError(
+                f"refine.search.{key} is not allowed with refine={refinement.name}: it takes "
+                f"{', '.join(sorted(fields - {'search'})) or 'no settings'}"
+            )
+        if not isinstance(values, Sequence) or isinstance(values, str) or len(values) == 0:
+            raise ConfigError(f"refine.search.{key}={values} is not allowed: it must be a non-empty list of values")
+    keys = list(grid)
+    return [dict(zip(keys, combo)) for combo in itertools.product(*(list(grid[k]) for k in keys))]
+
+
+def candidates(refinement: Refinement, grid: dict) -> list[Refinement]:
+    """The refinement at each grid point (each checked as if configured so), with no search of its own."""
+    out = []
+    for point in grid_points(refinement, grid):
+        try:
+            out.append(dataclasses.replace(refinement, search=None, **point))
+        except ConfigError as e:  # the grid's value, not the configured one, is what is wrong
+            raise ConfigError(f"refine.search {point}: {e}") from None
+    return out
+
+
+@dataclasses.dataclass
+class SearchResult:
+    chosen: Refinement  # the refinement to apply to the test meshes
+    settings: dict  # its grid point, e.g. {"lam": 1.0, "omega": 2.0}
+    table: list[dict]  # every grid point with its mean score and per-mesh scores, in grid order
+
+    @property
+    def score(self) -> float:
+        """The chosen grid point's mean score."""
+        return max(row["score"] for row in self.table)
+
+
+def choose(
+    refinement: Refinement,
+    meshes: Sequence[Mesh],
+    probabilities: Sequence[np.ndarray],
+    features: Sequence[np.ndarray | None],
+    score: Callable[[Mesh, np.ndarray], float],
+) -> SearchResult:
+    """The grid point of `refinement.search` whose refinement of the held-out `meshes` (their model
+    probabilities and the refinement's features) scores highest on average."""
+    if not meshes:
+        raise ValueError("refine.search needs at least one held-out mesh to choose on")
+    points, refinements = grid_points(refinement, refinement.search), candidates(refinement, refinement.search)
+    table, best = [], 0
+    for point, candidate in zip(points, refinements):
+        scores = [score(m, candidate(m, p, f)) for m, p, f in zip(meshes, probabilities, features, strict=True)]
+        table.append({**point, "score": float(np.mean(scores)), "per_mesh": [float(s) for s in scores]})
+        if table[-1]["score"] > table[best]["score"]:
+            best = len(table) - 1
+    return SearchResult(refinements[best], points[best], table)
