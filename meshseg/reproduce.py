@@ -17,6 +17,7 @@ Settings: conf/reproduce.yaml (conf/report.yaml's, plus report.dry_run).
 from __future__ import annotations
 
 import logging
+import shlex
 import subprocess
 import sys
 from dataclasses import dataclass
@@ -88,15 +89,15 @@ def reproduce_from_config(cfg: DictConfig) -> Outcome:
     log.info("%s: %d cell(s) lack %d fold run(s)", manifest.name, len(cells), sum(len(c.folds) for c in cells))
     if cfg.report.dry_run:
         for i, cell in enumerate(cells, 1):
-            log.info("[%d/%d] would run: python -m meshseg.run -m %s", i, len(cells), " ".join(cell.sweep()))
+            log.info("[%d/%d] would run: python -m meshseg.run -m %s", i, len(cells), shlex.join(cell.sweep()))
         return Outcome(table, cells, [], None)
     failed = []
     for i, cell in enumerate(cells, 1):
         cmd = [sys.executable, "-m", "meshseg.run", "-m", *cell.sweep()]
-        log.info("[%d/%d] %s", i, len(cells), " ".join(cmd[1:]))
+        log.info("[%d/%d] %s", i, len(cells), shlex.join(cmd[1:]))  # quoted: a pasted line runs as launched
         if subprocess.run(cmd).returncode != 0:
             failed.append(cell)
-            log.error("sweep failed (its runs are marked FAILED in the store): %s", " ".join(cell.sweep()))
+            log.error("sweep failed (its runs are marked FAILED in the store): %s", shlex.join(cell.sweep()))
     if cells:
         table = build(manifest, cfg)
     return Outcome(table, cells, failed, publish(table, cfg.report))
