@@ -17,6 +17,7 @@ import logging
 import shutil
 import sys
 import time
+from typing import TYPE_CHECKING
 
 import hydra
 import numpy as np
@@ -28,6 +29,13 @@ from meshseg.job import FoldJob, FoldOutcome
 from meshseg.signals import terminate_interrupts
 from meshseg.sweep import in_sweep, job_done, job_files, job_overrides, job_progress, sweep_tag
 from meshseg.timing import Timings
+
+if TYPE_CHECKING:
+    from meshseg.refine import Refinement
+    from meshseg.refine.search import SearchResult
+    from meshseg.tracking import Tracker
+    from meshseg.training.data import FeatureSource
+    from meshseg.training.fit import FoldPredictions
 
 log = logging.getLogger("meshseg.run")
 
@@ -91,10 +99,12 @@ def run(cfg: DictConfig) -> FoldOutcome:
                 checkpoint_dir=job.checkpoints and str(job.checkpoints),
             )
             refine = job.refinement
-            preds = fit_predict(source, fitter, job.faces_per_mesh, job.workers, refine.search is not None)
+            preds = fit_predict(source, fitter, job.faces_per_mesh, job.workers, held_out=refine.search is not None)
             timings = Timings(preds.timings)
             chosen, searched = {}, {}
-            if refine.search is not None:  # its settings chosen on held-out training meshes, never a test mesh
+            if refine.search is not None and not preds.held_out:  # one class in the training faces: nothing held out
+                log.warning("refine.search: the model held no training mesh out; the configured settings stay")
+            elif refine.search is not None:  # its settings chosen on held-out training meshes, never a test mesh
                 with timings("refine_search"):
                     found = search_refinement(refine, preds, source, tracker, run_id)
                 refine, chosen = found.chosen, found.settings
@@ -150,13 +160,16 @@ def run(cfg: DictConfig) -> FoldOutcome:
     return FoldOutcome(key.category, key.fold, acc, False)
 
 
-def search_refinement(refine, preds, source, tracker, run_id: str):
+def search_refinement(
+    refine: Refinement, preds: FoldPredictions, source: FeatureSource, tracker: Tracker, run_id: str
+) -> SearchResult:
     """The search of `refine.search`'s grid (meshseg.refine.search.SearchResult): the grid point that scores
     best (the paper's accuracy, mean over the meshes) on the training meshes the fitter held out, refined
     from the probabilities of the model fitted without them. The whole grid's scores go to the run as
     `refine_search.json`."""
     from meshseg.metrics import area_weighted_accuracy
     from meshseg.refine.search import choose
+    from meshseg.tracking import FoldRecord
 
     meshes = preds.held_out
     features = [source.groups(m, refine.needs) for m in meshes]
@@ -175,7 +188,7 @@ def search_refinement(refine, preds, source, tracker, run_id: str):
         found.score,
         len(found.table),
     )
-    tracker.log_json(run_id, "refine_search.json", {"held_out": [m.id for m in meshes], "grid": found.table})
+    tracker.log_json(run_id, FoldRecord.REFINE_SEARCH, {"held_out": [m.id for m in meshes], "grid": found.table})
     return found
 
 

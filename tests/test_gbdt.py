@@ -15,7 +15,7 @@ from meshseg.data.splits import Fold
 from meshseg.errors import ConfigError
 from meshseg.models.gbdt import GradientBoostedTrees, inner_split
 from meshseg.training.context import TrainContext
-from meshseg.training.data import iter_test_inputs
+from meshseg.training.data import iter_test_inputs, mesh_groups
 from meshseg.training.fit import fit_predict
 from meshseg.training.fitters import build_fitter
 
@@ -86,11 +86,18 @@ def test_held_out_meshes_are_predicted_by_the_trees_grown_without_them(source): 
     """refine.search chooses on the held-out meshes' probabilities: those of the early-stopped trees, which
     never saw them (not the refitted ones, which did); without refit the two are one model."""
     (preds, fitter), (same, plain) = fit(source), fit(source, ("0",), 0, "model.trees.refit=false")
-    mesh_id = fitter.held_out_[0]
-    _, X = next(iter_test_inputs(preds_source(source), [mesh_id], preds.standardiser))
+    trees = fitter.trees_
+    assert trees.inner_booster_ is not trees.booster_ and plain.trees_.inner_booster_ is plain.trees_.booster_
+    assert preds.held_out == []  # fit_predict predicts the held-out meshes only when asked (held_out=True)
+    fold_source = dataclasses.replace(
+        source, fold=Fold(0, TRAIN, ("0",)), branches=compose_run(*SMALL, "model=gbdt").branches
+    )
+    _, X = next(iter_test_inputs(fold_source, [fitter.held_out_[0]], preds.standardiser))
     inner, refitted = fitter.predict_held_out(X), fitter.predict_proba(X)
-    assert inner.shape == refitted.shape and not np.allclose(inner, refitted)
-    _, X = next(iter_test_inputs(preds_source(source), [plain.held_out_[0]], same.standardiser))
+    expected = trees.inner_booster_.predict(X.reshape(len(X), -1), num_iteration=trees.rounds_)
+    np.testing.assert_allclose(inner[:, trees.classes_], expected, rtol=1e-6)
+    assert not np.allclose(inner, refitted)
+    _, X = next(iter_test_inputs(fold_source, [plain.held_out_[0]], same.standardiser))
     np.testing.assert_array_equal(plain.predict_held_out(X), plain.predict_proba(X))
     # the saved model keeps only the trees it predicts test meshes with
     restored = pickle.loads(pickle.dumps(fitter))
@@ -99,36 +106,44 @@ def test_held_out_meshes_are_predicted_by_the_trees_grown_without_them(source): 
         restored.predict_held_out(X)
 
 
-def preds_source(source):  # noqa: F811
-    return dataclasses.replace(source, fold=Fold(0, TRAIN, ("0",)), branches=3)
-
-
 def test_refine_search_chooses_on_held_out_training_meshes_through_meshseg_run(tmp_path, cache_dir):
     """model=gbdt with refine.search: the settings are chosen per fold on the held-out training meshes (never
-    the test mesh), recorded as run metrics and refine_search.json, and the logged model refines with them."""
+    the test mesh), recorded as run metrics and refine_search.json; the test mesh is refined with them, and so
+    is a new mesh by the fold's logged model. The grid leaves out the configured lam=2, so a run that refined
+    with the configured settings would label the test mesh otherwise."""
+    from meshseg.data.datasets import build_dataset
+    from meshseg.features.sets import FeatureSet
     from meshseg.predict import load_run_model
+    from meshseg.refine import build_refinement
     from meshseg.run import run
-    from meshseg.tracking import Tracker
+    from meshseg.tracking import FoldRecord, Tracker
 
     store = [f"paths.mlflow_dir={tmp_path}/mlruns", f"paths.log_dir={tmp_path}/logs", f"paths.cache_dir={cache_dir}"]
-    grid = "refine.search={lam:[0.0,2.0],omega:[0.0,2.0]}"
-    run(compose_run(*SMALL, "model=gbdt", "fold=0", grid, *store))
+    cfg = compose_run(*SMALL, "model=gbdt", "fold=0", "refine.search={lam:[0.0,8.0],omega:[0.0,2.0]}", *store)
+    run(cfg)
     client, (r,) = finished(store, "gbdt")
     m, fold = r.data.metrics, json.loads(r.data.tags["fold_ids"])
-    assert m["refine/lam"] in (0.0, 2.0) and m["refine/omega"] in (0.0, 2.0)
-    searched = json.loads(
-        Path(client.download_artifacts(r.info.run_id, "refine_search.json", str(tmp_path))).read_text()
-    )
+    path = client.download_artifacts(r.info.run_id, FoldRecord.REFINE_SEARCH, str(tmp_path))
+    searched = json.loads(Path(path).read_text())
     assert searched["held_out"] and set(searched["held_out"]) <= set(fold["train"])
     assert not set(searched["held_out"]) & set(fold["test"])  # never a test mesh
     rows = searched["grid"]
-    assert [(g["lam"], g["omega"]) for g in rows] == [(0.0, 0.0), (0.0, 2.0), (2.0, 0.0), (2.0, 2.0)]
+    assert [(g["lam"], g["omega"]) for g in rows] == [(0.0, 0.0), (0.0, 2.0), (8.0, 0.0), (8.0, 2.0)]
     best = max(rows, key=lambda g: g["score"])  # the first of equals
     assert (best["lam"], best["omega"]) == (m["refine/lam"], m["refine/omega"])
     assert np.isclose(m["refine/held_out_acc"], best["score"]) and len(best["per_mesh"]) == len(searched["held_out"])
-    # the fold's model refines a new mesh with the chosen settings, searching nothing
+    assert m["time/refine_search_s"] > 0 and m["time/predict_held_out_s"] > 0
+    # the fold's model refines with the chosen settings, searching nothing, and labels the test mesh as the run did
     model, _ = load_run_model(Tracker(f"sqlite:///{tmp_path}/mlruns/mlflow.db", "meshseg"), r.info.run_id)
     assert (model.refine["lam"], model.refine["omega"], model.refine["search"]) == (best["lam"], best["omega"], None)
+    (test_id,) = fold["test"]
+    mesh = build_dataset(cfg.dataset).load("figure", test_id)
+    arrays = np.load(client.download_artifacts(r.info.run_id, FoldRecord.PREDICTIONS, str(tmp_path)))
+    P, _, labels = model.predict(mesh, str(cache_dir))
+    np.testing.assert_array_equal(labels, arrays[f"labels_{test_id}"])
+    configured = dataclasses.replace(build_refinement(cfg.refine), search=None)  # lam=2, omega=2: no grid point
+    agd = mesh_groups(mesh, FeatureSet.from_config(cfg.features), configured.needs, str(cache_dir))
+    assert not np.array_equal(configured(mesh, P, agd), labels)  # so the run did refine with the chosen ones
 
 
 def test_refine_search_is_refused_for_a_model_that_holds_no_meshes_out():

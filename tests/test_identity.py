@@ -64,13 +64,15 @@ def test_what_is_not_a_knob_keeps_the_hash(monkeypatch, tmp_path):
 
 
 def test_a_knob_at_its_hash_default_keeps_the_hash_and_any_other_value_moves_it():
-    """budget.resample and split.seed came after runs were shipped: at their defaults the hash is the one
+    """budget.resample, split.seed and refine.search came after runs were shipped: at their defaults the hash is the one
     the golden table holds; set away from them, the run is another config."""
     base = identity(["dataset=psb", "budget=cpu"], "Airplane")
     assert base == HASHES["cnn1d 3B cpu psb"]
     assert identity(["dataset=psb", "budget=cpu", "budget.resample=fold", "split.seed=null"], "Airplane") == base
     assert identity(["dataset=psb", "budget=cpu", "budget.resample=epoch"], "Airplane") != base
     assert identity(["dataset=psb", "budget=cpu", "split.seed=1"], "Airplane") != base
+    assert identity(["dataset=psb", "budget=cpu", "refine.search=null"], "Airplane") == base
+    assert identity(["dataset=psb", "budget=cpu", "refine.search={lam:[1.0,2.0]}"], "Airplane") != base
 
 
 def test_budget_cpu2_is_cpu_trained_in_bf16_and_a_run_of_its_own():

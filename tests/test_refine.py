@@ -14,6 +14,7 @@ from meshseg.data.mesh import Mesh
 from meshseg.features.geometry import face_centers, per_face_normals
 from meshseg.metrics import area_weighted_accuracy
 from meshseg.refine import Argmax, GraphCutAGD, GraphCutClassic, build_refinement, graphcut, refine_labels
+from meshseg.refine.search import choose
 
 METHODS = ("none", "graphcut_classic", "graphcut_agd")
 
@@ -292,8 +293,6 @@ def test_a_bad_setting_is_refused_when_the_refinement_is_built(name, key, value)
 
 
 def test_search_chooses_the_best_grid_point_and_the_first_of_equals(noisy_cup):
-    from meshseg.refine.search import choose
-
     mesh, P, agd = noisy_cup
     refinement = build_refinement(conf("graphcut_agd", search={"lam": [0.0, 2.0], "omega": [2.0, 0.0]}))
     acc = lambda m, labels: area_weighted_accuracy(labels, m.labels, m.face_areas)  # noqa: E731
@@ -314,8 +313,12 @@ def test_search_chooses_the_best_grid_point_and_the_first_of_equals(noisy_cup):
     "grid, message",
     [
         ({"lamb": [1.0]}, r"refine.search.lamb is not allowed with refine=graphcut_agd: it takes convex_factor, eps"),
-        ({"lam": []}, r"refine.search.lam=\[\] is not allowed: it must be a non-empty list"),
-        ({"lam": 2.0}, r"refine.search.lam=2.0 is not allowed: it must be a non-empty list"),
+        ({"feature_norm": ["std", "none"]}, r"refine.search.feature_norm is not allowed with refine=graphcut_agd"),
+        ({"lam": []}, r"refine.search.lam=\[\] is not allowed: it must be a non-empty list of numbers"),
+        ({"lam": 2.0}, r"refine.search.lam=2.0 is not allowed: it must be a non-empty list of numbers"),
+        ({"lam": ["2"]}, r"refine.search.lam=\['2'\] is not allowed: it must be a non-empty list of numbers"),
+        ([1.0, 2.0], r"refine.search=\[1.0, 2.0\] is not allowed: give settings with lists of values"),
+        (True, r"refine.search=True is not allowed: give settings with lists of values"),
         (
             {"lam": [1.0, -1.0]},
             r"refine.search \{'lam': -1.0\}: refine.lam=-1.0 is not allowed with refine=graphcut_agd",

@@ -96,7 +96,7 @@ class GradientBoostedTrees:
 
     def predict_proba(self, X: np.ndarray, held_out: bool = False) -> np.ndarray:
         out = np.zeros((len(X), self.n_classes), dtype=np.float32)
-        booster = self.inner_booster_ if held_out else self.booster_
+        booster = getattr(self, "inner_booster_", None) if held_out else self.booster_
         if held_out and booster is None and self.booster_ is not None:
             raise RuntimeError("the trees grown without the held-out meshes are not kept in a saved model")
         if booster is None:

@@ -166,7 +166,7 @@ def build_refinement(cfg) -> Refinement:
         raise ConfigError(f"refine={cfg.get('name', '?')}: {cfg._target_} is not a meshseg.refine.Refinement")
     if refinement.search is not None:  # every grid point checked now, before any fold trains
         grid = refinement.search
-        refinement.search = OmegaConf.to_container(grid) if OmegaConf.is_config(grid) else dict(grid)
+        refinement.search = OmegaConf.to_container(grid) if OmegaConf.is_config(grid) else grid
         candidates(refinement, refinement.search)
     return refinement
 

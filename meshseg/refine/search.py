@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -20,20 +20,31 @@ from meshseg.errors import ConfigError
 from meshseg.refine.refinement import Refinement
 
 
+def numeric_settings(refinement: Refinement) -> list[str]:
+    """The settings of `refinement` a grid may range over: its numbers (a chosen value is logged as a metric)."""
+    if not dataclasses.is_dataclass(refinement):
+        return []
+    defaults = {f.name: f.default for f in dataclasses.fields(refinement)}
+    return sorted(k for k, v in defaults.items() if isinstance(v, int | float) and not isinstance(v, bool))
+
+
 def grid_points(refinement: Refinement, grid: dict) -> list[dict]:
-    """Every combination of the grid's values, as settings of `refinement`, in grid order; a key the
-    refinement does not take, or an empty list, is refused."""
-    if not grid:
-        raise ConfigError(f"refine.search={grid} is not allowed: give settings with lists of values")
-    fields = {f.name for f in dataclasses.fields(refinement)} if dataclasses.is_dataclass(refinement) else set()
+    """Every combination of the grid's values, as settings of `refinement`, in grid order; a grid that is
+    not settings with non-empty lists of numbers, or a key that is not a numeric setting, is refused."""
+    if not isinstance(grid, Mapping) or not grid:
+        raise ConfigError(
+            f"refine.search={grid} is not allowed: give settings with lists of values, e.g. {{lam: [1, 2]}}"
+        )
+    allowed = numeric_settings(refinement)
     for key, values in grid.items():
-        if key not in fields or key == "search":
+        if key not in allowed:
             raise ConfigError(
                 f"refine.search.{key} is not allowed with refine={refinement.name}: it takes "
-                f"{', '.join(sorted(fields - {'search'})) or 'no settings'}"
+                f"{', '.join(allowed) or 'no settings'}"
             )
-        if not isinstance(values, Sequence) or isinstance(values, str) or len(values) == 0:
-            raise ConfigError(f"refine.search.{key}={values} is not allowed: it must be a non-empty list of values")
+        numbers = isinstance(values, Sequence) and not isinstance(values, str) and len(values) > 0
+        if not numbers or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in values):
+            raise ConfigError(f"refine.search.{key}={values} is not allowed: it must be a non-empty list of numbers")
     keys = list(grid)
     return [dict(zip(keys, combo)) for combo in itertools.product(*(list(grid[k]) for k in keys))]
 
@@ -53,12 +64,8 @@ def candidates(refinement: Refinement, grid: dict) -> list[Refinement]:
 class SearchResult:
     chosen: Refinement  # the refinement to apply to the test meshes
     settings: dict  # its grid point, e.g. {"lam": 1.0, "omega": 2.0}
+    score: float  # its mean score over the held-out meshes
     table: list[dict]  # every grid point with its mean score and per-mesh scores, in grid order
-
-    @property
-    def score(self) -> float:
-        """The chosen grid point's mean score."""
-        return max(row["score"] for row in self.table)
 
 
 def choose(
@@ -79,4 +86,4 @@ def choose(
         table.append({**point, "score": float(np.mean(scores)), "per_mesh": [float(s) for s in scores]})
         if table[-1]["score"] > table[best]["score"]:
             best = len(table) - 1
-    return SearchResult(refinements[best], points[best], table)
+    return SearchResult(refinements[best], points[best], table[best]["score"], table)

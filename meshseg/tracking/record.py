@@ -73,8 +73,8 @@ class FoldRecord:
         "data_hash",
     )
     #: the two accuracies every fold logs (area-weighted mean over the test meshes), after and before refinement.
-    #: Metrics are named by role: train/* (per epoch, from Lightning), test/*, time/<phase>_s, speed/*;
-    #: counts (samples, faces, epochs) are params n_*.
+    #: Metrics are named by role: train/* (per epoch, from Lightning), test/*, time/<phase>_s, speed/*,
+    #: refine/* (what refine.search chose); counts (samples, faces, epochs) are params n_*.
     ACC, ACC_RAW = "test/acc", "test/acc_raw"
     #: artifact: the resolved config (YAML)
     CONFIG = "config.yaml"
@@ -83,6 +83,8 @@ class FoldRecord:
     PER_MESH_COLUMNS = ("mesh", "faces", "area", "acc_raw", "acc")
     #: the per-mesh columns a report may average
     MESH_METRICS = ("acc", "acc_raw")
+    #: artifact (runs with refine.search): the held-out meshes and every grid point's scores (JSON)
+    REFINE_SEARCH = "refine_search.json"
     #: artifact: per-face arrays, keys `<prefix><mesh id>` with these dtypes
     PREDICTIONS = "predictions.npz"
     PREDICTION_ARRAYS = {"labels_": "int16", "labels_raw_": "int16", "probs_": "float16"}
