@@ -21,6 +21,20 @@ def require(path: Path) -> Path:
     return path
 
 
+@pytest.fixture(autouse=True)
+def no_store_in_the_checkout():
+    """A test that opens the default store (`mlruns/` where it runs) writes into the checkout: fail it by name.
+    (Where a checkout already holds a store of its own, the check cannot tell and is skipped.)"""
+    store = REPO / "mlruns"
+    had = store.exists()
+    yield
+    if not had and store.exists():
+        import shutil
+
+        shutil.rmtree(store, ignore_errors=True)
+        pytest.fail(f"this test made {store}: give it a store of its own (paths.mlflow_dir or MESHSEG_MLFLOW_DIR)")
+
+
 #: fixtures of the tests that train folds (a store of runs, or a run of their own): those tests run first
 HEAVY = {"smoke_store", "store"}
 

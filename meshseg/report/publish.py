@@ -16,7 +16,7 @@ from meshseg.report.aggregate import Bootstrap
 from meshseg.report.cells import Table
 from meshseg.report.config import run_overrides
 from meshseg.report.manifest import Manifest
-from meshseg.report.table import collect
+from meshseg.report.table import check_request, collect
 from meshseg.report.write import markdown, write_report
 
 log = logging.getLogger("meshseg.report")
@@ -32,16 +32,19 @@ def import_results(manifest: Manifest, cfg: DictConfig) -> None:
     root = cfg.report.get("results")
     if not root or not Path(root).is_dir():
         return
-    overrides = [*manifest.overrides, *run_overrides(cfg)]
-    given = [*overrides, *(o for g in manifest.groups for o in g.overrides)]
-    given += [o for c in manifest.columns for o in c.overrides or ()]
-    try:
-        run_cfg = run_config(overrides)
+    try:  # every cell's run config, before a store is opened: one that does not compose opens none
+        configs = [
+            run_config([*manifest.cell_overrides(g, c), *run_overrides(cfg)])
+            for g in manifest.groups
+            for c in manifest.columns
+            if c.predictions is None
+        ]
     except ConfigError:
         return  # the table's own composition names the override at fault
-    datasets = {o.split("=", 1)[1] for o in given if o.startswith("dataset=")}
-    datasets = datasets or {run_cfg.dataset._target_.rsplit(".", 1)[1].lower()}  # PSB -> psb
-    t = run_cfg.tracking
+    if not configs:
+        return
+    datasets = {c.dataset._target_.rsplit(".", 1)[1].lower() for c in configs}  # PSB -> psb
+    t = configs[0].tracking
     tracker = Tracker(t.uri, t.experiment, t.artifact_dir)
     for name in sorted(datasets):
         if (Path(root) / name).is_dir():
@@ -55,17 +58,13 @@ def import_results(manifest: Manifest, cfg: DictConfig) -> None:
 def build(manifest: Manifest, cfg: DictConfig) -> Table:
     """The manifest's table from the runs, with the app config's run overrides and `report.*` settings."""
     s = cfg.report
-    import_results(manifest, cfg)
     if s.get("columns") is not None:
         manifest = manifest.only_columns([str(k) for k in s.columns])
-    table = collect(
-        manifest,
-        run_overrides(cfg),
-        metric=s.metric,
-        sets=None if s.sets is None else list(s.sets),
-        paired=None if s.get("paired") is None else OmegaConf.to_container(s.paired),  # replaces the manifest's
-        boot=bootstrap(s),
-    )
+    sets = None if s.sets is None else list(s.sets)
+    paired = None if s.get("paired") is None else OmegaConf.to_container(s.paired)  # replaces the manifest's
+    check_request(manifest, s.metric, sets, paired)  # a mistyped setting opens no store
+    import_results(manifest, cfg)
+    table = collect(manifest, run_overrides(cfg), metric=s.metric, sets=sets, paired=paired, boot=bootstrap(s))
     # the settings that decide which runs a table lacks go into its `meshseg.reproduce` command
     settings = ()
     if s.get("columns") is not None:

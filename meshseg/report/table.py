@@ -229,6 +229,14 @@ def _cell(plan: CellPlan, meshes: pd.DataFrame, metric: str, boot: Bootstrap) ->
     return set_cell(cell, sample, boot, ("set", plan.group, plan.row, cell.column.key))
 
 
+def check_request(manifest: Manifest, metric: str, sets, paired) -> None:
+    """report.metric, report.sets and report.paired checked against the manifest, before any store is opened."""
+    if metric not in FoldRecord.MESH_METRICS:
+        raise ConfigError(f"report.metric={metric} is not allowed: choose one of {list(FoldRecord.MESH_METRICS)}")
+    _kept_sets(manifest, sets)
+    _pairs_asked(manifest, paired)
+
+
 def _kept_sets(manifest: Manifest, sets) -> set[str] | None:
     """report.sets as a set of names, each checked to name a set (by its name or category) of the manifest."""
     keep = None if sets is None else {str(s) for s in sets}
@@ -298,8 +306,7 @@ def collect_records(
 
 def _table(manifest: Manifest, overrides, metric: str, sets, boot: Bootstrap, read) -> Table:
     """The table without its blocks, its runs' per-mesh rows found by `read` (see _meshes)."""
-    if metric not in FoldRecord.MESH_METRICS:
-        raise ConfigError(f"report.metric={metric} is not allowed: choose one of {list(FoldRecord.MESH_METRICS)}")
+    check_request(manifest, metric, sets, None)
     keep = _kept_sets(manifest, sets)
     planner = _Planner(manifest, overrides)
     grids = {}
