@@ -306,7 +306,8 @@ def collect_records(
 
 def _table(manifest: Manifest, overrides, metric: str, sets, boot: Bootstrap, read) -> Table:
     """The table without its blocks, its runs' per-mesh rows found by `read` (see _meshes)."""
-    check_request(manifest, metric, sets, None)
+    if metric not in FoldRecord.MESH_METRICS:
+        raise ConfigError(f"report.metric={metric} is not allowed: choose one of {list(FoldRecord.MESH_METRICS)}")
     keep = _kept_sets(manifest, sets)
     planner = _Planner(manifest, overrides)
     grids = {}
