@@ -49,12 +49,12 @@ def grid_points(refinement: Refinement, grid: dict) -> list[dict]:
     return [dict(zip(keys, combo)) for combo in itertools.product(*(list(grid[k]) for k in keys))]
 
 
-def candidates(refinement: Refinement, grid: dict) -> list[Refinement]:
-    """The refinement at each grid point (each checked as if configured so), with no search of its own."""
+def candidates(refinement: Refinement, grid: dict) -> list[tuple[dict, Refinement]]:
+    """Each grid point with the refinement at it (checked as if configured so), with no search of its own."""
     out = []
     for point in grid_points(refinement, grid):
         try:
-            out.append(dataclasses.replace(refinement, search=None, **point))
+            out.append((point, dataclasses.replace(refinement, search=None, **point)))
         except ConfigError as e:  # the grid's value, not the configured one, is what is wrong
             raise ConfigError(f"refine.search {point}: {e}") from None
     return out
@@ -79,11 +79,12 @@ def choose(
     probabilities and the refinement's features) scores highest on average."""
     if not meshes:
         raise ValueError("refine.search needs at least one held-out mesh to choose on")
-    points, refinements = grid_points(refinement, refinement.search), candidates(refinement, refinement.search)
+    grid = candidates(refinement, refinement.search)
     table, best = [], 0
-    for point, candidate in zip(points, refinements):
+    for point, candidate in grid:
         scores = [score(m, candidate(m, p, f)) for m, p, f in zip(meshes, probabilities, features, strict=True)]
         table.append({**point, "score": float(np.mean(scores)), "per_mesh": [float(s) for s in scores]})
         if table[-1]["score"] > table[best]["score"]:
             best = len(table) - 1
-    return SearchResult(refinements[best], points[best], table[best]["score"], table)
+    point, chosen = grid[best]
+    return SearchResult(chosen, point, table[best]["score"], table)
