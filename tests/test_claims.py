@@ -125,6 +125,14 @@ def test_a_bad_claims_file_is_refused_with_its_name(tmp_path):
     bad.write_text("claims:\n  - {id: '1', text: x, table: t, a: a}\n")
     with pytest.raises(ManifestError, match=r"b is required, except with test: refinement"):
         load_claims(bad)
+    one = "claims:\n  - {id: '1', text: x, table: t, a: a, b: b}\nbudget_study: {table: s, compare: {3B: %s}}\n"
+    bad.write_text(one % "[x]")
+    with pytest.raises(ManifestError, match=r"claims.yaml: budget_study.compare.3B: a pair \[a, b\] or a list"):
+        load_claims(bad)
+    bad.write_text(one % "[x, y]")  # one pair written bare, or a list of pairs
+    assert load_claims(bad).study["compare"] == {"3B": [("x", "y")]}
+    bad.write_text(one % "[[x, y], [z, y]]")
+    assert load_claims(bad).tables_needed() == {"t": {"a", "b"}, "s": {"x", "y", "z"}}
 
 
 def test_every_shipped_claim_names_columns_and_sets_its_manifest_has():
@@ -165,21 +173,41 @@ def test_the_readme_claims_table_matches_reports_claims_csv():
             assert r[3] == "—"
 
 
-def test_the_budget_study_note_says_whether_the_budget_moves_a_claims_evidence():
+def test_the_budget_study_note_weighs_every_budget_alternative_and_names_those_that_move_it():
     t = table({"s1": noisy(1.0), "s2": noisy(1.0)})
-    spec = {"table": "study", "compare": {"3B": ["a", "b"]}}
 
-    def effect(study):
+    def effect(study, pairs=(("a", "b"),)):
+        spec = {"table": "study", "compare": {"3B": list(pairs)}}
         c = Claim("c", "a beats b", "§4", "t", "a", "b", models=("3B",))
         cf = ClaimsFile("claims", "C", "rule", (), (c,), (), 1.0, 2.0, spec, Path("c.yaml"))
         return build_report(cf, {"t": t, "study": study}).verdicts[0]
 
     moved = effect(table({"s1": noisy(0.8), "s2": noisy(0.9)}))  # the alternative budget scores higher
-    assert moved.budget_effect == "moves it" and "3B a − b +0.8" in moved.notes[0]
-    assert summary_table_line(moved).endswith("| cpu; budget study: moves it |")
+    assert moved.budget_effect == "moves it (a)" and "3B a − b +0.8" in moved.notes[0]
+    assert summary_table_line(moved).endswith("| cpu; budget study: moves it (a) |")
     assert effect(table({"s1": noisy(0.0, 40), "s2": noisy(0.0, 40)})).budget_effect == "no effect"
     pending = effect(table({"s1": noisy(1.0), "s2": noisy(1.0)}, missing={"s1": 1}))
-    assert pending.budget_effect == "pending" and "budget study not yet run (1 runs missing)" in pending.notes[0]
+    assert pending.budget_effect == "pending"
+    assert "3B a − b: budget study not yet run (1 runs missing)" in pending.notes[0]
+    # two alternatives, a (+0.8) and b against itself (0 exactly): only a moves it, and the note names it
+    both = effect(table({"s1": noisy(0.8), "s2": noisy(0.9)}), pairs=(("a", "b"), ("b", "b")))
+    assert both.budget_effect == "moves it (a)" and "3B b − b +0.00" in both.notes[0]
+
+
+def test_a_claims_interval_is_the_study_reports_paired_interval_for_the_same_comparison():
+    """The claims report and a study's paired block draw the same resamples for the same comparison, so
+    the same a - b prints the same interval in both (budget study and claims once differed by 0.02)."""
+    from dataclasses import replace
+
+    from meshseg.report.aggregate import Bootstrap, compare
+
+    t = table({"s1": noisy(0.3), "s2": noisy(0.1), "s3": noisy(-0.2)})
+    avg = Row("Average", "average", "G", t.rows[0].cells)
+    t = replace(t, rows=(*t.rows, avg))
+    v, block = judge(claim(), t, n_boot=500, seed=3), compare(t, "a", "b", Bootstrap(500, 0.95, 3)).rows
+    assert [s.ci for s in v.sets] == [r.ci for r in block[:3]]
+    assert block[3].label == "Average" and v.ci == block[3].ci and v.value == pytest.approx(block[3].value)
+    assert judge(claim(sets=("s1", "s2")), t, n_boot=500, seed=3).ci != v.ci  # part of the sets: its own
 
 
 def summary_table_line(v) -> str:

@@ -50,7 +50,7 @@ class Verdict:
     missing_runs: int = 0
     budget: str = ""  # the budget(s) of the evidence
     notes: list[str] = field(default_factory=list)
-    budget_effect: str = ""  # what the budget study says of it: pending | moves it | no effect ("": not asked)
+    budget_effect: str = ""  # the budget study's word: pending | moves it (which) | no effect ("": not asked)
 
     @property
     def reproduced_text(self) -> str:
@@ -109,6 +109,24 @@ def _published_difference(table: Table, claim: Claim, rows, ia: int, ib: int | N
     return float(np.mean([pa - pb for pa, pb in pubs]))
 
 
+def _identity(table: Table, claim: Claim, row) -> tuple[str, ...]:
+    """The bootstrap identity of a claim's interval on set `row` (None: over the claim's sets): the one the
+    study report's paired (or refinement) block gives the same comparison, so both print the same interval;
+    a claim on part of a group's sets, or against a published-only column, has its own."""
+    group = claim.group or table.manifest.groups[0].name
+    if row is None:
+        if claim.sets is not None:
+            return ("claim", claim.id)
+        row = next((r for r in table.rows if r.kind == "average" and r.group == group), None)
+        if row is None:
+            return ("claim", claim.id)
+    if claim.test == "refinement":
+        return ("refinement", row.kind, row.group, row.label, claim.a)
+    if next(c for c in table.columns if c.key == claim.b).overrides is None:  # against the paper's number
+        return ("claim", claim.id, *((row.label,) if row.kind == "set" else ()))
+    return ("paired", row.kind, row.group, row.label, claim.a, claim.b)
+
+
 def _differences(table: Table, rows, claim: Claim, ib: int | None) -> list[np.ndarray]:
     """Per set row, the per-mesh differences the claim is judged on (every cell complete)."""
     out = []
@@ -162,9 +180,9 @@ def judge(claim: Claim, table: Table, n_boot: int = 2000, seed: int = 0) -> Verd
     boot = Bootstrap(n_boot, table.level, seed)
     diffs = _differences(table, rows, claim, ib)
     for r, d in zip(rows, diffs):
-        v.sets.append(SetDiff(r.label, float(d.mean()), boot.interval([d], "claim", claim.id, r.label), len(d)))
+        v.sets.append(SetDiff(r.label, float(d.mean()), boot.interval([d], *_identity(table, claim, r)), len(d)))
     v.value = float(np.mean([d.mean() for d in diffs]))
-    v.ci = boot.interval(diffs, "claim", claim.id)
+    v.ci = boot.interval(diffs, *_identity(table, claim, None))
     v.verdict, v.against = decide(claim.test, v.ci, v.sets, claim.margin, claim.min_share)
     return v
 
@@ -204,24 +222,24 @@ def judge_table(spec: TableSpec, table: Table, verdicts: list[Verdict], full: fl
 
 
 def budget_note(claim: Claim, study: Table | None, spec: dict, n_boot: int, seed: int) -> tuple[str, str]:
-    """What the budget study says of the models the claim's evidence rests on: per model, the budget
-    alternative minus `cpu` over the study's sets, and whether that moves results (interval excludes 0).
-    Returns (the note, its gist: pending | moves it | no effect; both empty where the claim names no model)."""
+    """What the budget study says of the models the claim's evidence rests on: per model and per budget
+    alternative the study ran, the alternative minus `cpu` over its sets, and whether that moves results
+    (interval excludes 0). Returns (the note, its gist: pending | moves it (the alternatives that do) | no
+    effect; both empty where the claim names no model)."""
     if not claim.models or study is None:
         return "", ""
-    parts, gist = [], []
+    parts, movers, pending = [], [], False
     for model in claim.models:
-        a, b = spec["compare"][model]
-        probe = Claim(f"budget {model}", "", "", study.manifest.name, a, b)
-        v = judge(probe, study, n_boot, seed)
-        if v.value is None:
-            parts.append(f"{model}: budget study {v.verdict_text}")
-            gist.append("pending")
-            continue
-        moves = v.ci[0] > 0 or v.ci[1] < 0
-        parts.append(f"{model} {a} − {b} {v.reproduced_text}: the budget {'moves it' if moves else 'does not move it'}")
-        gist.append("moves it" if moves else "no effect")
-    effect = "moves it" if "moves it" in gist else "pending" if "pending" in gist else "no effect"
+        for a, b in spec["compare"][model]:
+            v = judge(Claim(f"budget {model}", "", "", study.manifest.name, a, b), study, n_boot, seed)
+            if v.value is None:
+                parts.append(f"{model} {a} − {b}: budget study {v.verdict_text}")
+                pending = True
+                continue
+            moves = v.ci[0] > 0 or v.ci[1] < 0
+            movers += [a] if moves else []
+            parts.append(f"{model} {a} − {b} {v.reproduced_text}: {'moves it' if moves else 'does not move it'}")
+    effect = f"moves it ({', '.join(movers)})" if movers else "pending" if pending else "no effect"
     return "; ".join(parts), effect
 
 

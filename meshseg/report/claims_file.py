@@ -49,9 +49,8 @@ class ClaimsFile:
     tables: tuple[TableSpec, ...]
     full: float  # a table's run columns all within this of the published averages (points): full
     partial: float  # some run column within this: partial
-    study: (
-        dict  # budget_study: {table, compare: {model: [a, b]}, fold_lists: {model: [a, b]}, floor_table, floor_columns}
-    )
+    # budget_study: {table, compare: {model: [(a, b), ...]}, fold_lists: {model: [a, b]}, floor_table, floor_columns}
+    study: dict
     path: Path
 
     def tables_needed(self) -> dict[str, set[str]]:
@@ -62,7 +61,8 @@ class ClaimsFile:
         for t in self.tables:
             need.setdefault(t.table, set())  # every run column: filled in by the caller from the manifest
         if self.study:
-            pairs = [*self.study.get("compare", {}).values(), *self.study.get("fold_lists", {}).values()]
+            pairs = [*(p for ps in self.study.get("compare", {}).values() for p in ps)]
+            pairs += self.study.get("fold_lists", {}).values()
             need.setdefault(self.study["table"], set()).update(k for p in pairs for k in p)
             if self.study.get("floor_table"):
                 need.setdefault(self.study["floor_table"], set()).update(self.study["floor_columns"].values())
@@ -127,6 +127,21 @@ def load_claims(path) -> ClaimsFile:
         tables,
         float(thresholds.get("full", 1.0)),
         float(thresholds.get("partial", 2.0)),
-        dict(doc.get("budget_study") or {}),
+        _study(doc.get("budget_study") or {}, path),
         path,
     )
+
+
+def _study(spec: dict, path: Path) -> dict:
+    """`budget_study:` with each model's `compare` as a list of (alternative, cpu) pairs; one pair may be
+    written bare ([a, b])."""
+    spec = dict(spec)
+    compare = {}
+    for model, pairs in (spec.get("compare") or {}).items():
+        pairs = [pairs] if pairs and all(isinstance(p, str) for p in pairs) else pairs
+        if not pairs or not all(isinstance(p, list) and len(p) == 2 for p in pairs):
+            raise ManifestError(f"{path}: budget_study.compare.{model}: a pair [a, b] or a list of them")
+        compare[str(model)] = [tuple(map(str, p)) for p in pairs]
+    if compare:
+        spec["compare"] = compare
+    return spec
