@@ -21,7 +21,7 @@ from meshseg import CONF_DIR
 from meshseg.cli import usage, user_errors
 from meshseg.report.cells import Table
 from meshseg.report.claims import claims_from_config, summary_table
-from meshseg.report.claims_file import is_claims_file
+from meshseg.report.claims_file import is_claims_file, load_claims
 from meshseg.report.config import check_config, compose_config, hydra_argv
 from meshseg.report.manifest import load_manifest
 from meshseg.report.publish import build, publish, summary
@@ -48,12 +48,20 @@ def run_app(argv, app, config_name: str, doc: str) -> None:
     usage(doc, argv)
     with user_errors():
         args = hydra_argv(argv, config_name)
+        _check_manifest_file(args)
     saved = sys.argv
     sys.argv = [saved[0], *args]  # hydra.main reads sys.argv
     try:
         app()
     finally:
         sys.argv = saved
+
+
+def _check_manifest_file(app_args) -> None:
+    """A missing or malformed manifest (or claims file) refused before Hydra makes the command's log folder."""
+    path = next((a.split("=", 1)[1] for a in app_args if a.startswith("manifest=")), "")
+    if path:
+        load_claims(path) if is_claims_file(path) else load_manifest(path)
 
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="report")
