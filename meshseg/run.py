@@ -193,13 +193,17 @@ def search_refinement(
 
 
 def setup_process(trainer: DictConfig) -> None:
-    """Process-wide settings of the trainer config: torch's thread count, glibc's malloc tuning."""
+    """Process-wide settings of the trainer config: the thread count of torch and of numpy's BLAS and OpenMP
+    pools, glibc's malloc tuning."""
     import torch
+    from threadpoolctl import threadpool_limits
 
     from meshseg.training.malloc import tune_glibc_malloc
 
     if trainer.threads:
         torch.set_num_threads(int(trainer.threads))
+        # BLAS too: two workers at threads=1 on two cores once made PCA & NN's eigh spin 3x longer (benchmarks/)
+        threadpool_limits(limits=int(trainer.threads))
     if trainer.get("malloc_tune"):
         tune_glibc_malloc()  # speed only: results are the same either way
 

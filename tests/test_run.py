@@ -178,6 +178,24 @@ def test_console_scripts_and_hydra_tab_completion():
     assert {"model=cnn1d", "model=cnn2d", "model=rf"} <= set(options), options
 
 
+def test_trainer_threads_bounds_numpys_blas_pool_as_well_as_torchs():
+    """Two workers at trainer.threads=1 on two cores: a BLAS pool of every core spins for a core the other
+    holds (PCA & NN's eigh 13.6x slower, benchmarks/blas_threads.py)."""
+    import torch
+    from omegaconf import OmegaConf
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    from meshseg.run import setup_process
+
+    before = torch.get_num_threads()
+    with threadpool_limits(limits=None):  # restores every pool's count afterwards
+        setup_process(OmegaConf.create({"threads": 1, "malloc_tune": False}))
+        blas = [p for p in threadpool_info() if p["user_api"] == "blas"]
+        assert blas and all(p["num_threads"] == 1 for p in blas), blas
+        assert torch.get_num_threads() == 1
+    torch.set_num_threads(before)
+
+
 def test_config_hash_ignores_paths_and_sees_knobs():
     cfg = {"paths": {"cache_dir": "a"}, "branches": 3, "model": {"hidden": 172}}
     h = config_hash(cfg, ["paths"], {"data_hash": "x"})
