@@ -102,9 +102,10 @@ class Standardiser:
     category) is centred and left unscaled."""
 
     def fit(self, X: np.ndarray) -> Standardiser:
-        X64 = X.astype(np.float64, copy=False)
-        self.mean_ = X64.mean(axis=0).astype(np.float32)
-        std = X64.std(axis=0)
+        # float64 sums without a float64 copy of X: the same numbers as X.astype(float64).std(axis=0) with
+        # half the peak memory (a GBDT 16k training set is 2.3 GB of float32)
+        self.mean_ = X.mean(axis=0, dtype=np.float64).astype(np.float32)
+        std = X.std(axis=0, dtype=np.float64)
         self.scale_ = np.where(std > 1e-12, std, 1.0).astype(np.float32)
         return self
 
@@ -183,6 +184,7 @@ def build_train(
         total += mesh.n_faces
     with source.timings("standardise"):
         X = np.concatenate(xs)
+        xs.clear()  # the per-mesh copies: no second X in memory while standardising
         standardiser = Standardiser().fit(X)
         X = standardiser.transform(X)
     n_classes = len(source.dataset.label_names(source.category))
