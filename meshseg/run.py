@@ -126,6 +126,7 @@ def run(cfg: DictConfig) -> FoldOutcome:
                 / preds.timings["train"],
                 "speed/predict_faces_per_s": preds.counts["test_faces"] / max(preds.timings.get("predict", 0.0), 1e-9),
                 **searched,
+                **fitter.fitted(),
             }
             # record (the timings last, so that they include the recording itself)
             log.info("logging predictions%s", ", the model" if t["log_model"] else "")

@@ -57,7 +57,7 @@ class GradientBoostedTrees:
             "seed": self.seed,
             "deterministic": True,
             "force_row_wise": True,
-            "num_threads": self.n_jobs if self.n_jobs and self.n_jobs > 0 else 0,
+            "num_threads": self.n_jobs if self.n_jobs and self.n_jobs > 0 else 0,  # 0: LightGBM's default
             "verbosity": -1,
         }
 
@@ -102,7 +102,8 @@ class GradientBoostedTrees:
         if booster is None:
             out[:, self.classes_[0]] = 1.0
             return out
-        p = booster.predict(X.reshape(len(X), -1), num_iteration=self.rounds_)
+        threads = self.n_jobs if self.n_jobs and self.n_jobs > 0 else 0  # trainer.threads, as the fit had
+        p = booster.predict(X.reshape(len(X), -1), num_iteration=self.rounds_, num_threads=threads)
         out[:, self.classes_] = p if p.ndim == 2 else np.column_stack([1 - p, p])
         return out
 

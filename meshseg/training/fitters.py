@@ -59,6 +59,10 @@ class Fitter:
     def predict_held_out(self, X: np.ndarray) -> np.ndarray:
         raise NotImplementedError(f"{type(self).__name__} holds no training meshes out")
 
+    def fitted(self) -> dict[str, float]:
+        """What `fit` chose, logged as the run's metrics (none for most fitters)."""
+        return {}
+
     def __getstate__(self) -> dict:
         # a fitter saved with its run (the model/ artifact) keeps its trained parts, not the run's logger
         state = dict(self.__dict__)
@@ -162,6 +166,9 @@ class GbdtFitter(Fitter):
 
     def predict_held_out(self, X: np.ndarray) -> np.ndarray:
         return self.trees_.predict_proba(X, held_out=True)
+
+    def fitted(self) -> dict[str, float]:
+        return {"gbdt/rounds": float(self.rounds_)}  # the held-out meshes: the log, and refine.search's record
 
 
 def build_fitter(model_cfg, context: TrainContext) -> Fitter:
