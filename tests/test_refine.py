@@ -307,6 +307,12 @@ def test_search_chooses_the_best_grid_point_and_the_first_of_equals(noisy_cup):
     assert found.table[2]["per_mesh"] == [found.table[2]["score"]] * 2
     same = choose(refinement, [mesh], [P], [agd], lambda m, labels: 0.5)  # all equal: the grid's first
     assert same.settings == {"lam": 0.0, "omega": 2.0}
+    # the config hash sorts a grid's keys, so the grid's order must not depend on how the YAML wrote them
+    swapped = build_refinement(conf("graphcut_agd", search={"omega": [2.0, 0.0], "lam": [0.0, 2.0]}))
+    assert [r["per_mesh"] for r in choose(swapped, [mesh], [P], [agd], acc).table] == [
+        r["per_mesh"][:1] for r in found.table
+    ]
+    assert choose(swapped, [mesh], [P], [agd], lambda m, labels: 0.5).settings == {"lam": 0.0, "omega": 2.0}
 
 
 @pytest.mark.parametrize(

@@ -2,9 +2,10 @@
 fold's training meshes (e.g. the ones gbdt holds out for early stopping), never on a test mesh.
 
 `refine.search` names a grid, e.g. `{lam: [0.5, 1, 2, 4], omega: [0, 1, 2, 4]}`; every combination is
-tried in grid order and the one with the highest mean score over the held-out meshes wins (the first of
-equals, so the configured values win a tie when they are the grid's first). The score is the caller's
-(the run passes the paper's accuracy): the refinement package does not import the metrics.
+tried in grid order (the settings by name, each one's values as listed) and the one with the highest mean
+score over the held-out meshes wins (the first of equals, so the configured values win a tie when they are
+the grid's first). The score is the caller's (the run passes the paper's accuracy): the refinement package
+does not import the metrics.
 """
 
 from __future__ import annotations
@@ -29,8 +30,9 @@ def numeric_settings(refinement: Refinement) -> list[str]:
 
 
 def grid_points(refinement: Refinement, grid: dict) -> list[dict]:
-    """Every combination of the grid's values, as settings of `refinement`, in grid order; a grid that is
-    not settings with non-empty lists of numbers, or a key that is not a numeric setting, is refused."""
+    """Every combination of the grid's values, as settings of `refinement`, in grid order (settings sorted by
+    name, values as listed); a grid that is not settings with non-empty lists of numbers, or a key that is
+    not a numeric setting, is refused."""
     if not isinstance(grid, Mapping) or not grid:
         raise ConfigError(
             f"refine.search={grid} is not allowed: give settings with lists of values, e.g. {{lam: [1, 2]}}"
@@ -45,7 +47,7 @@ def grid_points(refinement: Refinement, grid: dict) -> list[dict]:
         numbers = isinstance(values, Sequence) and not isinstance(values, str) and len(values) > 0
         if not numbers or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in values):
             raise ConfigError(f"refine.search.{key}={values} is not allowed: it must be a non-empty list of numbers")
-    keys = list(grid)
+    keys = sorted(grid)  # the config hash sorts the keys too: one hash, one order, one tie-break
     return [dict(zip(keys, combo)) for combo in itertools.product(*(list(grid[k]) for k in keys))]
 
 
