@@ -19,6 +19,7 @@ from omegaconf import DictConfig
 
 from meshseg import CONF_DIR
 from meshseg.cli import usage, user_errors
+from meshseg.errors import MeshsegError
 from meshseg.report.cells import Table
 from meshseg.report.claims import claims_from_config, summary_table
 from meshseg.report.claims_file import is_claims_file, load_claims
@@ -58,10 +59,16 @@ def run_app(argv, app, config_name: str, doc: str) -> None:
 
 
 def _check_manifest_file(app_args) -> None:
-    """A missing or malformed manifest (or claims file) refused before Hydra makes the command's log folder."""
+    """A missing or malformed manifest (or claims file) refused before Hydra makes the command's log folder.
+    Any other exception is a bug: left for the app to meet again, where Hydra reports it with its traceback."""
     path = next((a.split("=", 1)[1] for a in app_args if a.startswith("manifest=")), "")
-    if path:
-        load_claims(path) if is_claims_file(path) else load_manifest(path)
+    try:
+        if path:
+            load_claims(path) if is_claims_file(path) else load_manifest(path)
+    except MeshsegError:
+        raise
+    except Exception:  # reported by the app, under Hydra's error handling
+        pass
 
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="report")
