@@ -73,10 +73,11 @@ def test_the_first_trees_never_see_the_held_out_rows_and_the_refit_grows_the_cho
     calls = []
     train = GradientBoostedTrees._train
 
-    def spy(self, X, y, rounds, valid=None):
-        booster, record = train(self, X, y, rounds, valid)
+    def spy(self, X, y, rounds, valid=None, bins=None):
+        booster, record, data = train(self, X, y, rounds, valid, bins)
         calls.append((len(X), rounds, None if valid is None else len(valid[0]), booster.current_iteration()))
-        return booster, record
+        assert (bins is None) == (valid is not None)  # the refit reuses the first fit's bin edges
+        return booster, record, data
 
     monkeypatch.setattr(GradientBoostedTrees, "_train", spy)
     model = GradientBoostedTrees(3, seed=0, early_stopping_rounds=5, max_rounds=200).fit(X, y, groups)

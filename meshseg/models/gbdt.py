@@ -61,10 +61,13 @@ class GradientBoostedTrees:
             "verbosity": -1,
         }
 
-    def _train(self, X, y, rounds: int, valid=None):
+    def _train(self, X, y, rounds: int, valid=None, bins=None):
+        """(booster, evaluation record, its Dataset): `rounds` of boosting, early-stopped on `valid` if given;
+        `bins`, a Dataset whose bin edges to reuse (binning 2,400 features again costs more than the rest of
+        building the Dataset: benchmarks/gbdt_binning.py)."""
         import lightgbm as lgb
 
-        data = lgb.Dataset(X, y, params={"max_bin": self.settings.max_bin}, free_raw_data=False)
+        data = lgb.Dataset(X, y, params={"max_bin": self.settings.max_bin}, reference=bins, free_raw_data=False)
         record: dict = {}
         kwargs = {}
         if valid is not None:
@@ -74,7 +77,7 @@ class GradientBoostedTrees:
                 lgb.record_evaluation(record),
             ]
         booster = lgb.train(self._params(self.n_present_), data, num_boost_round=rounds, **kwargs)
-        return booster, record
+        return booster, record, data
 
     def fit(self, X: np.ndarray, y: np.ndarray, groups: np.ndarray) -> GradientBoostedTrees:
         X = X.reshape(len(X), -1)
@@ -87,10 +90,11 @@ class GradientBoostedTrees:
         code = np.searchsorted(self.classes_, y)
         self.inner_ = inner_split(groups, self.settings.inner_meshes, self.seed)
         held = np.isin(groups, self.inner_)
-        booster, record = self._train(X[~held], code[~held], self.settings.max_rounds, (X[held], code[held]))
+        booster, record, data = self._train(X[~held], code[~held], self.settings.max_rounds, (X[held], code[held]))
         self.rounds_ = int(booster.best_iteration or booster.current_iteration())
         self.curve_ = next(iter(next(iter(record.values())).values())) if record else []
-        self.booster_ = self._train(X, code, self.rounds_)[0] if self.settings.refit else booster
+        # the refit bins every training row on the edges the rounds were chosen with
+        self.booster_ = self._train(X, code, self.rounds_, bins=data)[0] if self.settings.refit else booster
         self.inner_booster_ = booster
         return self
 
