@@ -15,9 +15,7 @@ from __future__ import annotations
 import argparse
 import multiprocessing as mp
 import os
-import statistics
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +23,7 @@ from threadpoolctl import threadpool_limits
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.interleave import interleaved, print_medians  # noqa: E402
 from meshseg.models.pca_nn import principal_axes  # noqa: E402
 
 
@@ -48,23 +47,22 @@ def main(argv=None) -> None:
     procs = [mp.Process(target=_spin, args=(stop,), daemon=True) for _ in range(args.busy)]
     for p in procs:
         p.start()
-    times: dict[str, list[float]] = {k: [] for k in settings}
+
+    def limited(n: int):
+        def call():
+            with threadpool_limits(limits=n, user_api="blas"):
+                principal_axes(X, 50)
+
+        return call
+
     try:
-        for _ in range(args.repeats):
-            for name, n in settings.items():
-                with threadpool_limits(limits=n, user_api="blas"):
-                    t = time.perf_counter()
-                    principal_axes(X, 50)
-                    times[name].append(time.perf_counter() - t)
+        times = interleaved({name: limited(n) for name, n in settings.items()}, args.repeats)
     finally:
         stop.set()
         for p in procs:
             p.join()
     print(f"principal_axes of {args.faces} x {args.features}, {args.busy} busy process(es), {os.cpu_count()} cores")
-    base = statistics.median(times["BLAS 1 thread"])
-    for name, ts in times.items():
-        m = statistics.median(ts)
-        print(f"  {name:<18} median {m:6.3f} s  (min {min(ts):.3f}, max {max(ts):.3f})  {m / base:5.2f}x one thread")
+    print_medians(times, "BLAS 1 thread")
 
 
 if __name__ == "__main__":

@@ -12,10 +12,14 @@ Random normal inputs (binning cost depends on the sizes, not the values). Each f
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
+import sys
+from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.interleave import interleaved, print_medians  # noqa: E402
 
 
 def main(argv=None) -> None:
@@ -41,17 +45,9 @@ def main(argv=None) -> None:
             X, y, params=params, reference=first, free_raw_data=False
         ).construct(),
     }
-    times: dict[str, list[float]] = {k: [] for k in builds}
-    for _ in range(args.repeats):
-        for name, build in builds.items():
-            t = time.perf_counter()
-            build()
-            times[name].append(time.perf_counter() - t)
+    times = interleaved(builds, args.repeats)
     print(f"LightGBM Dataset of {args.rows} x {args.features}, {args.threads} thread(s)")
-    base = statistics.median(times["fresh bin edges"])
-    for name, ts in times.items():
-        m = statistics.median(ts)
-        print(f"  {name:<22} median {m:6.2f} s  (min {min(ts):.2f}, max {max(ts):.2f})  {m / base:4.2f}x fresh")
+    print_medians(times, "fresh bin edges")
 
 
 if __name__ == "__main__":

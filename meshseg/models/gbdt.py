@@ -41,6 +41,11 @@ class GradientBoostedTrees:
         self.settings = GbdtSettings.of(settings)
         self.n_classes, self.n_jobs, self.seed = int(n_classes), n_jobs, int(seed)
 
+    @property
+    def _threads(self) -> int:
+        """LightGBM's num_threads for fitting and predicting: n_jobs (trainer.threads), 0 its default."""
+        return self.n_jobs if self.n_jobs and self.n_jobs > 0 else 0
+
     def _params(self, n_present: int) -> dict:
         s = self.settings
         return {
@@ -57,7 +62,7 @@ class GradientBoostedTrees:
             "seed": self.seed,
             "deterministic": True,
             "force_row_wise": True,
-            "num_threads": self.n_jobs if self.n_jobs and self.n_jobs > 0 else 0,  # 0: LightGBM's default
+            "num_threads": self._threads,
             "verbosity": -1,
         }
 
@@ -106,8 +111,7 @@ class GradientBoostedTrees:
         if booster is None:
             out[:, self.classes_[0]] = 1.0
             return out
-        threads = self.n_jobs if self.n_jobs and self.n_jobs > 0 else 0  # trainer.threads, as the fit had
-        p = booster.predict(X.reshape(len(X), -1), num_iteration=self.rounds_, num_threads=threads)
+        p = booster.predict(X.reshape(len(X), -1), num_iteration=self.rounds_, num_threads=self._threads)
         out[:, self.classes_] = p if p.ndim == 2 else np.column_stack([1 - p, p])
         return out
 
