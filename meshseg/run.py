@@ -203,7 +203,7 @@ def setup_process(trainer: DictConfig) -> None:
 
     if trainer.threads:
         torch.set_num_threads(int(trainer.threads))
-        # BLAS too: two workers at threads=1 on two cores once made PCA & NN's eigh spin 3x longer (benchmarks/)
+        # BLAS too: beside two workers a 2-thread BLAS made PCA & NN's principal axes 13.6x slower (benchmarks/)
         threadpool_limits(limits=int(trainer.threads))
     if trainer.get("malloc_tune"):
         tune_glibc_malloc()  # speed only: results are the same either way

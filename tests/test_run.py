@@ -180,7 +180,7 @@ def test_console_scripts_and_hydra_tab_completion():
 
 def test_trainer_threads_bounds_numpys_blas_pool_as_well_as_torchs():
     """Two workers at trainer.threads=1 on two cores: a BLAS pool of every core spins for a core the other
-    holds (PCA & NN's eigh 13.6x slower, benchmarks/blas_threads.py)."""
+    holds (PCA & NN's principal axes 13.6x slower, benchmarks/blas_threads.py)."""
     import torch
     from omegaconf import OmegaConf
     from threadpoolctl import threadpool_info, threadpool_limits

@@ -61,7 +61,7 @@ class ClaimsFile:
         for t in self.tables:
             need.setdefault(t.table, set())  # every run column: filled in by the caller from the manifest
         if self.study:
-            pairs = [*(p for ps in self.study.get("compare", {}).values() for p in ps)]
+            pairs = [p for ps in self.study.get("compare", {}).values() for p in ps]
             pairs += self.study.get("fold_lists", {}).values()
             need.setdefault(self.study["table"], set()).update(k for p in pairs for k in p)
             if self.study.get("floor_table"):
