@@ -11,55 +11,12 @@ does not import the metrics.
 from __future__ import annotations
 
 import dataclasses
-import itertools
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
 from meshseg.data.mesh import Mesh
-from meshseg.errors import ConfigError
-from meshseg.refine.refinement import Refinement
-
-
-def numeric_settings(refinement: Refinement) -> list[str]:
-    """The settings of `refinement` a grid may range over: its numbers (a chosen value is logged as a metric)."""
-    if not dataclasses.is_dataclass(refinement):
-        return []
-    defaults = {f.name: f.default for f in dataclasses.fields(refinement)}
-    return sorted(k for k, v in defaults.items() if isinstance(v, int | float) and not isinstance(v, bool))
-
-
-def grid_points(refinement: Refinement, grid: dict) -> list[dict]:
-    """Every combination of the grid's values, as settings of `refinement`, in grid order (settings sorted by
-    name, values as listed); a grid that is not settings with non-empty lists of numbers, or a key that is
-    not a numeric setting, is refused."""
-    if not isinstance(grid, Mapping) or not grid:
-        raise ConfigError(
-            f"refine.search={grid} is not allowed: give settings with lists of values, e.g. {{lam: [1, 2]}}"
-        )
-    allowed = numeric_settings(refinement)
-    for key, values in grid.items():
-        if key not in allowed:
-            raise ConfigError(
-                f"refine.search.{key} is not allowed with refine={refinement.name}: it takes "
-                f"{', '.join(allowed) or 'no settings'}"
-            )
-        numbers = isinstance(values, Sequence) and not isinstance(values, str) and len(values) > 0
-        if not numbers or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in values):
-            raise ConfigError(f"refine.search.{key}={values} is not allowed: it must be a non-empty list of numbers")
-    keys = sorted(grid)  # the config hash sorts the keys too: one hash, one order, one tie-break
-    return [dict(zip(keys, combo)) for combo in itertools.product(*(list(grid[k]) for k in keys))]
-
-
-def candidates(refinement: Refinement, grid: dict) -> list[tuple[dict, Refinement]]:
-    """Each grid point with the refinement at it (checked as if configured so), with no search of its own."""
-    out = []
-    for point in grid_points(refinement, grid):
-        try:
-            out.append((point, dataclasses.replace(refinement, search=None, **point)))
-        except ConfigError as e:  # the grid's value, not the configured one, is what is wrong
-            raise ConfigError(f"refine.search {point}: {e}") from None
-    return out
+from meshseg.refine.refinement import Refinement, candidates
 
 
 @dataclasses.dataclass
