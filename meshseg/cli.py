@@ -1,4 +1,4 @@
-"""What every `python -m meshseg.<command>` shares: the error contract, usage, and the check of a run's command line.
+"""What every `python -m meshseg.<command>` shares: the error contract and usage.
 
 A user's mistake (a `MeshsegError`: bad file, bad setting, store not answering) ends any command with one
 line `error: <message>` on stderr and exit status `ERROR_EXIT`, the status Hydra itself exits with on a bad
@@ -53,26 +53,3 @@ def usage(doc: str, argv: list[str]) -> None:
         return
     print(doc.strip())
     sys.exit(0 if argv else ERROR_EXIT)
-
-
-#: Hydra's flags whose next argument is their value, not an override
-_VALUE_FLAGS = {
-    *("-sc", "--shell-completion", "-cp", "--config-path", "-cn", "--config-name", "-cd", "--config-dir"),
-    *("-c", "--cfg", "-p", "--package", "--experimental-rerun"),
-}
-
-
-def check_argv(argv: list[str]) -> None:
-    """`check_settings` on the command line's overrides, before Hydra suggests `+key=` for a typo."""
-    keys, flag_value = [], False
-    for arg in argv:
-        if flag_value or arg.startswith("-") or "=" not in arg:
-            # -m, --flags, and the value of a flag that takes one (`-sc install=bash` is no setting)
-            flag_value = arg in _VALUE_FLAGS
-            continue
-        key = arg.split("=", 1)[0].lstrip("+~").split(".")[0].split("/")[0].split("@")[0]
-        if key != "hydra":
-            keys.append(key)
-    from meshseg.job import check_settings  # the run config's own check, here on the command line's keys
-
-    check_settings(keys)

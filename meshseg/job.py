@@ -146,6 +146,27 @@ def check_settings(keys) -> None:
             raise ConfigError(f"unknown setting {key!r}{hint}: meshseg.run takes {', '.join(known)}")
 
 
+#: Hydra's flags whose next argument is their value, not an override
+_VALUE_FLAGS = {
+    *("-sc", "--shell-completion", "-cp", "--config-path", "-cn", "--config-name", "-cd", "--config-dir"),
+    *("-c", "--cfg", "-p", "--package", "--experimental-rerun"),
+}
+
+
+def check_argv(argv: list[str]) -> None:
+    """`check_settings` on the command line's overrides, before Hydra suggests `+key=` for a typo."""
+    keys, flag_value = [], False
+    for arg in argv:
+        if flag_value or arg.startswith("-") or "=" not in arg:
+            # -m, --flags, and the value of a flag that takes one (`-sc install=bash` is no setting)
+            flag_value = arg in _VALUE_FLAGS
+            continue
+        key = arg.split("=", 1)[0].lstrip("+~").split(".")[0].split("/")[0].split("@")[0]
+        if key != "hydra":
+            keys.append(key)
+    check_settings(keys)
+
+
 def check_config(cfg: DictConfig) -> None:
     """Every run setting no config group checks for itself; each message lists what is allowed."""
     check_settings([k for k in cfg.keys() if k != "hydra"])  # a sweep job's config carries hydra's own node

@@ -24,8 +24,8 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from meshseg import CONF_DIR
-from meshseg.cli import check_argv, command, user_errors
-from meshseg.job import FoldJob, FoldOutcome
+from meshseg.cli import command, user_errors
+from meshseg.job import FoldJob, FoldOutcome, check_argv
 from meshseg.signals import terminate_interrupts
 from meshseg.sweep import in_sweep, job_done, job_files, job_overrides, job_progress, sweep_tag
 from meshseg.timing import Timings
