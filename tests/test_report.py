@@ -189,6 +189,15 @@ def test_progress_counts_the_cells_no_run_can_fill_apart():
     assert "about 90 s on one process" in line  # the one missing fold at the column's median fold time
 
 
+def test_progress_sums_each_columns_run_time():
+    """A finished table says what its runs took, column by column, summed over runs (NaN: a run with no end time)."""
+    timed = Cell(COL, None, n_meshes=2, folds=2, seconds=(1500.0, 2100.0, float("nan")))
+    rows = [Row("Teddy", "set", "PSB", [timed]), Row("Cup", "set", "PSB", [Cell(COL, None, n_meshes=1, folds=1)])]
+    done = progress(Table(load_manifest(SYNTH), rows, (), "acc", 0.95))
+    assert done.spent == {COL.label: (2, 3600.0)}
+    assert done.text() == f"All 2 cells complete. Run time so far, summed over runs: {COL.label} 1.0 h (2 runs)."
+
+
 # --- manifests and settings -----------------------------------------------------------------------
 
 
@@ -511,8 +520,13 @@ def test_a_deleted_fold_is_incomplete_and_reproduce_launches_only_it(smoke_store
     assert line.startswith("8 of 9 cells complete; 1 fold runs missing. Next: `python -m meshseg.reproduce ")
     rf = runs_of(tmp_path / "mlruns", filter_string="tags.model = 'rf'")  # the 5 left
     seconds = np.median([(r.info.end_time - r.info.start_time) / 1000 for r in rf])
-    took = re.search(r"about (\d+) s on one process at the median fold time so far \(RF (\d+) s\)\.$", line)
+    took = re.search(r"about (\d+) s on one process at the median fold time so far \(RF (\d+) s\)\. ", line)
     assert took and int(took[1]) == int(took[2]) == round(seconds)  # one missing fold at the median fold time
+    # and what the column's finished runs took, summed (the time a finished column reports)
+    spent = re.search(r"Run time so far, summed over runs: .*RF (\d+) (s|min) \((\d+) runs\)", line)
+    total = sum((r.info.end_time - r.info.start_time) / 1000 for r in rf)
+    assert spent and int(spent[3]) == len(rf) == 5
+    assert int(spent[1]) == round(total if spent[2] == "s" else total / 60)
 
     n = len(runs_of(tmp_path / "mlruns", filter_string="attributes.status = 'FINISHED'"))
     pasted = shlex.split(line.split("`")[1])  # the printed command, as a user would paste it

@@ -137,7 +137,7 @@ class Table:
 @dataclass(frozen=True)
 class Progress:
     """How far a table is and what fills the rest: set cells complete, fold runs missing, the command
-    that makes them and the time it should take at the fold times measured so far."""
+    that makes them, the time it should take at the fold times measured so far, and what the runs took."""
 
     cells_done: int
     cells: int
@@ -147,18 +147,28 @@ class Progress:
     fold_seconds: dict[str, float]  # median wall time of a fold, by the label of a column that lacks runs
     untimed: tuple[str, ...]  # labels of the columns lacking runs that have no timed fold yet
     unavailable: int = 0  # set cells no run can fill here (their dataset or category is not at hand)
+    spent: dict[str, tuple[int, float]] = field(default_factory=dict)  # column label -> (timed runs, their seconds)
 
     def text(self) -> str:
         aside = f" ({self.unavailable} more unavailable: no data here to run them)" if self.unavailable else ""
         if not self.runs_missing:
-            return f"All {self.cells} cells complete{aside}."
+            return f"All {self.cells} cells complete{aside}." + self.spent_text()
         line = f"{self.cells_done} of {self.cells} cells complete{aside}; {self.runs_missing} fold runs missing. "
         line += f"Next: `{self.command}`"
         if not self.fold_seconds:
-            return line + " — no fold timed yet to say how long."
+            return line + " — no fold timed yet to say how long." + self.spent_text()
         per = ", ".join(f"{k} {v:.0f} s" for k, v in self.fold_seconds.items())
         line += f" — about {_duration(self.seconds)} on one process at the median fold time so far ({per})"
-        return line + (f", plus the columns not timed yet: {', '.join(self.untimed)}." if self.untimed else ".")
+        line += f", plus the columns not timed yet: {', '.join(self.untimed)}." if self.untimed else "."
+        return line + self.spent_text()
+
+    def spent_text(self) -> str:
+        """What the table's runs cost so far: each column's runs and their wall times summed (one process;
+        workers side by side share the wall clock)."""
+        if not self.spent:
+            return ""
+        each = ", ".join(f"{k} {_duration(s)} ({n} runs)" for k, (n, s) in self.spent.items())
+        return f" Run time so far, summed over runs: {each}."
 
 
 def _duration(seconds: float) -> str:
@@ -173,7 +183,7 @@ def progress(table: Table) -> Progress:
     cells = [c for c in run_cells if c.status in ("ok", "incomplete")]
     times: dict[str, list[float]] = {}
     for c in cells:
-        times.setdefault(c.column.label, []).extend(c.seconds)
+        times.setdefault(c.column.label, []).extend(s for s in c.seconds if np.isfinite(s))
     todo = [c for c in cells if c.status == "incomplete"]
     lacking = list(dict.fromkeys(c.column.label for c in todo))
     medians = {k: float(np.median(times[k])) for k in lacking if times[k]}
@@ -194,4 +204,5 @@ def progress(table: Table) -> Progress:
         fold_seconds=medians,
         untimed=tuple(k for k in lacking if k not in medians),
         unavailable=sum(c.status == "unavailable" for c in run_cells),
+        spent={k: (len(v), float(sum(v))) for k, v in times.items() if v},
     )
