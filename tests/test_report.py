@@ -192,10 +192,11 @@ def test_progress_counts_the_cells_no_run_can_fill_apart():
 def test_progress_sums_each_columns_run_time():
     """A finished table says what its runs took, column by column, summed over runs (NaN: a run with no end time)."""
     timed = Cell(COL, None, n_meshes=2, folds=2, seconds=(1500.0, 2100.0, float("nan")))
-    rows = [Row("Teddy", "set", "PSB", [timed]), Row("Cup", "set", "PSB", [Cell(COL, None, n_meshes=1, folds=1)])]
+    other = Column("b", "B", ("model=cnn2d",))
+    rows = [Row("Teddy", "set", "PSB", [timed, Cell(other, None, n_meshes=1, folds=1, seconds=(42.0,))])]
     done = progress(Table(load_manifest(SYNTH), rows, (), "acc", 0.95))
-    assert done.spent == {COL.label: (2, 3600.0)}
-    assert done.text() == f"All 2 cells complete. Run time so far, summed over runs: {COL.label} 1.0 h (2 runs)."
+    assert done.spent == {"A": (2, 3600.0), "B": (1, 42.0)}
+    assert done.text() == "All 2 cells complete. Run time so far, summed over runs: A 1.0 h (2 runs), B 42 s (1 run)."
 
 
 # --- manifests and settings -----------------------------------------------------------------------

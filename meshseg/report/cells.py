@@ -167,7 +167,7 @@ class Progress:
         workers side by side share the wall clock)."""
         if not self.spent:
             return ""
-        each = ", ".join(f"{k} {_duration(s)} ({n} runs)" for k, (n, s) in self.spent.items())
+        each = ", ".join(f"{k} {_duration(s)} ({n} run{'s' * (n != 1)})" for k, (n, s) in self.spent.items())
         return f" Run time so far, summed over runs: {each}."
 
 
