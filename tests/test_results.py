@@ -6,6 +6,7 @@ import shutil
 from pathlib import Path
 
 import pytest
+import torch
 from conftest import REPO, SMOKE, smoke_env
 
 from meshseg.report import report
@@ -45,6 +46,7 @@ def test_export_writes_one_small_record_per_finished_run(exported, smoke_store):
         row["faces"] for row in r["per_mesh"]
     )
     assert "cores" in r["tags"]["machine"] and "torch" in r["tags"]["versions"]
+    assert torch.backends.cpu.get_cpu_capability() in r["tags"]["machine"]
     assert "split.k=2" in json.loads(r["tags"]["overrides"])
     assert max(p.stat().st_size for p, _ in records) < 20_000  # no per-face arrays
     assert export(tracker(smoke_store), out) == (0, 18)  # exporting again changes no file

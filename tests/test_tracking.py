@@ -381,3 +381,19 @@ def test_a_run_key_names_the_run_and_reads_back_from_its_tags():
     tags = {k: str(v) for k, v in vars(key).items()} | {"git_sha": "x", "seed": "0"}
     assert RunKey.from_tags(tags) == key
     assert set(vars(key)) == set(FoldRecord.TAGS) - {"git_sha"}  # the key is the tags a report selects by
+
+
+def test_the_machine_tag_names_the_vector_instructions_and_bf16(monkeypatch):
+    """Two hosts both called 'AMD EPYC, 2 cores' trained ToG15 3x apart per face; the tag tells them apart by
+    what PyTorch's kernels use, and says bf16 only where the CPU announces it."""
+    import torch
+
+    from meshseg.tracking.provenance import machine
+    from meshseg.training import context
+
+    monkeypatch.setattr(torch.backends.cpu, "get_cpu_capability", lambda: "AVX2")
+    monkeypatch.setattr(context, "cpu_bf16_flags", lambda: [])
+    assert machine().endswith(" cores, AVX2")
+    monkeypatch.setattr(torch.backends.cpu, "get_cpu_capability", lambda: "AVX512")
+    monkeypatch.setattr(context, "cpu_bf16_flags", lambda: ["avx512_bf16"])
+    assert machine().endswith(" cores, AVX512 + bf16")
