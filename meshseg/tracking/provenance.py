@@ -38,9 +38,8 @@ def slurm_job() -> str | None:
 
 def machine(accelerator: str = "cpu") -> str:
     """What ran it: the CPU model, its cores and the vector instructions PyTorch's CPU kernels use (with bf16
-    where the CPU has it in hardware), and the GPU where one trained. The instructions, not the model name, tell
-    two hosts' timings apart: on one 'AMD EPYC, 2 cores' ToG15 trained a 5-fold fold (16,000 faces) in a median 101 s,
-    on another a LOO fold (19,000 faces) in 40 s; and `cpu2` (bf16-mixed) runs only where bf16 is in hardware."""
+    where the CPU has it in hardware), and the GPU where one trained. Hosts with one model name differ 3x in
+    speed by their instructions, and `cpu2` (bf16-mixed) runs only where bf16 is in hardware."""
     import os
     import platform
 
