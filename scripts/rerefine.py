@@ -27,7 +27,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from meshseg.errors import ConfigError  # noqa: E402
+from meshseg.errors import ConfigError, MeshsegError, TrackingError  # noqa: E402
 
 
 def rerefine(mesh, probabilities, features, refinement, setting: str, values) -> list[float]:
@@ -106,9 +106,9 @@ def main(argv: list[str]) -> None:
             logged = 100 * area_weighted_accuracy(arrays[f"labels_{mesh_id}"], mesh.labels, mesh.face_areas)
             replay = rerefine(mesh, P, features, job.refinement, setting, [logged_value])[0]
             if abs(replay - logged) > 1e-6:
-                raise RuntimeError(
+                raise TrackingError(
                     f"mesh {mesh_id} (fold {i}): refining the logged probabilities at {setting}={logged_value:g} "
-                    f"gives {replay:.4f} %, the run logged {logged:.4f} %: these are not the run's settings"
+                    f"gives {replay:.4f} %, the run logged {logged:.4f} % (did refine.search choose its settings?)"
                 )
             row = [
                 100 * area_weighted_accuracy(P.argmax(axis=1), mesh.labels, mesh.face_areas),
@@ -128,5 +128,5 @@ def main(argv: list[str]) -> None:
 if __name__ == "__main__":
     try:
         main(sys.argv[1:])
-    except ConfigError as e:
+    except MeshsegError as e:  # bad input or a store without these runs: one line, no traceback
         sys.exit(f"error: {e}")

@@ -39,3 +39,9 @@ def test_rerefine_refuses_a_setting_the_refinement_does_not_have(smoke_store, ca
     assert (
         out.stderr.strip().splitlines()[-1].startswith("error: gamma is not a numeric setting of refine=graphcut_agd")
     )
+
+
+def test_rerefine_names_a_store_that_is_not_there(tmp_path, cache_dir):
+    out = rerefine(tmp_path / "none", cache_dir, *SMOKE, "dataset=synthetic", "split=5fold", "category=cup", "lam=[1]")
+    assert out.returncode == 1 and out.stderr.strip().splitlines()[-1].startswith("error: ")
+    assert str(tmp_path / "none") in out.stderr and not (tmp_path / "none").exists()  # said, and no store made
