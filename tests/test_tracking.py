@@ -397,3 +397,27 @@ def test_the_machine_tag_names_the_vector_instructions_and_bf16(monkeypatch):
     monkeypatch.setattr(torch.backends.cpu, "get_cpu_capability", lambda: "AVX512")
     monkeypatch.setattr(context, "cpu_bf16_flags", lambda: ["avx512_bf16"])
     assert machine().endswith(" cores, AVX512 + bf16")
+
+
+def test_git_sha_is_dirty_for_changed_code_not_for_rewritten_reports(tmp_path):
+    # a run worktree's `meshseg.reproduce` rewrites reports/: its later runs still ran the commit's code
+    from meshseg.tracking.provenance import git_sha
+
+    def git(*args):
+        subprocess.run(["git", "-c", "user.email=t@t", "-c", "user.name=t", *args], cwd=tmp_path, check=True)
+
+    (tmp_path / "meshseg").mkdir()
+    (tmp_path / "reports").mkdir()
+    (tmp_path / "meshseg" / "a.py").write_text("x = 1\n")
+    (tmp_path / "reports" / "t.md").write_text("| 1 |\n")
+    git("init", "-q")
+    git("add", ".")
+    git("commit", "-qm", "c")
+    sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=tmp_path, capture_output=True, text=True).stdout.strip()
+    assert git_sha(tmp_path) == sha
+    (tmp_path / "reports" / "t.md").write_text("| 2 |\n")
+    (tmp_path / "new.py").write_text("")  # untracked: not the commit's, not counted either
+    assert git_sha(tmp_path) == sha
+    (tmp_path / "meshseg" / "a.py").write_text("x = 2\n")
+    assert git_sha(tmp_path) == sha + "+dirty"
+    assert git_sha(tmp_path / "missing") == "unknown"

@@ -75,15 +75,21 @@ def versions() -> str:
     return ", ".join(out)
 
 
-def git_sha() -> str:
-    """The package's git commit, '+dirty' when tracked files differ from it; 'unknown' outside git."""
-    root = Path(__file__).resolve().parents[2]
+#: what the package writes or documents, not what runs: a run worktree whose `meshseg.reproduce` has rewritten
+#: its report is still the commit's code
+NOT_CODE = ("reports", "results", "docs", "notebooks")
+
+
+def git_sha(root: Path | None = None) -> str:
+    """The package's git commit, '+dirty' when tracked files outside `NOT_CODE` differ from it; 'unknown'
+    outside git. `root`: the checkout (default: this package's)."""
+    root = root or Path(__file__).resolve().parents[2]
     try:
         sha = subprocess.run(
             ["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, check=True
         ).stdout.strip()
         dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"],
+            ["git", "status", "--porcelain", "--untracked-files=no", "--", ".", *(f":(exclude){p}" for p in NOT_CODE)],
             cwd=root,
             capture_output=True,
             text=True,
