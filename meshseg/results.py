@@ -26,6 +26,7 @@ import logging
 import math
 import os
 import re
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -60,12 +61,14 @@ def record_of(tracker: Tracker, run) -> dict:
     run_id = run.info.run_id
     metrics = run.data.metrics
     counts = {k: int(v) for k, v in run.data.params.items() if k.startswith("n_")}
-    config = yaml.safe_load(Path(tracker.client.download_artifacts(run_id, FoldRecord.CONFIG)).read_text())
-    with open(tracker.client.download_artifacts(run_id, FoldRecord.PER_MESH), newline="") as f:
-        rows = [
-            {k: (v if k == "mesh" else int(v) if k == "faces" else float(v)) for k, v in row.items()}
-            for row in csv.DictReader(f)
-        ]
+    # a download without a destination is a new temporary folder MLflow never removes: two per run per export
+    with tempfile.TemporaryDirectory(prefix="meshseg-export-") as tmp:
+        config = yaml.safe_load(Path(tracker.client.download_artifacts(run_id, FoldRecord.CONFIG, tmp)).read_text())
+        with open(tracker.client.download_artifacts(run_id, FoldRecord.PER_MESH, tmp), newline="") as f:
+            rows = [
+                {k: (v if k == "mesh" else int(v) if k == "faces" else float(v)) for k, v in row.items()}
+                for row in csv.DictReader(f)
+            ]
     return {
         "format": FORMAT,
         "config_hash": run.data.tags["config_hash"],

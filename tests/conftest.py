@@ -35,6 +35,23 @@ def no_store_in_the_checkout():
         pytest.fail(f"this test made {store}: give it a store of its own (paths.mlflow_dir or MESHSEG_MLFLOW_DIR)")
 
 
+@pytest.fixture(scope="session", autouse=True)
+def temporary_files_in_the_session(tmp_path_factory):
+    """Temporary folders the tests' libraries leave behind (MLflow's artifact downloads make one a call and never
+    remove it) land in the session's folder, which pytest prunes, not in /tmp; subprocesses too (TMPDIR)."""
+    import tempfile
+
+    folder = tmp_path_factory.mktemp("tempfiles")
+    saved, env = tempfile.tempdir, os.environ.get("TMPDIR")
+    tempfile.tempdir, os.environ["TMPDIR"] = str(folder), str(folder)
+    yield folder
+    tempfile.tempdir = saved
+    if env is None:
+        os.environ.pop("TMPDIR", None)
+    else:
+        os.environ["TMPDIR"] = env
+
+
 #: fixtures of the tests that train folds (a store of runs, or a run of their own): those tests run first
 HEAVY = {"smoke_store", "store"}
 

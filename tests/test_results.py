@@ -3,6 +3,7 @@ and the report rebuilt from the import byte for byte; import is idempotent and r
 
 import json
 import shutil
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -22,9 +23,11 @@ def tracker(store: Path) -> Tracker:
 
 @pytest.fixture(scope="module")
 def exported(smoke_store, tmp_path_factory):
-    out = tmp_path_factory.mktemp("results")
-    written, unchanged = export(tracker(smoke_store), out)
-    return out, written, unchanged
+    out, scratch = tmp_path_factory.mktemp("results"), tmp_path_factory.mktemp("tempdir")
+    with pytest.MonkeyPatch.context() as m:  # every temporary folder the export makes lands in `scratch`
+        m.setattr(tempfile, "tempdir", str(scratch))
+        written, unchanged = export(tracker(smoke_store), out)
+    return out, written, unchanged, scratch
 
 
 def table_files(store: Path, out: Path, cache_dir: Path, monkeypatch) -> dict[str, bytes]:
@@ -35,7 +38,8 @@ def table_files(store: Path, out: Path, cache_dir: Path, monkeypatch) -> dict[st
 
 
 def test_export_writes_one_small_record_per_finished_run(exported, smoke_store):
-    out, written, unchanged = exported
+    out, written, unchanged, scratch = exported
+    assert list(scratch.iterdir()) == []  # no temporary folder left behind (MLflow's downloads were 2 a run)
     records = load_records(out)
     assert written == len(records) == 18 and unchanged == 0  # experiments/synthetic.yaml: 3 x 3 sets x 2 folds
     path, r = records[0]
@@ -55,7 +59,7 @@ def test_export_writes_one_small_record_per_finished_run(exported, smoke_store):
 def test_import_then_report_is_byte_identical_and_import_is_idempotent(
     exported, smoke_store, tmp_path, cache_dir, monkeypatch
 ):
-    out, _, _ = exported
+    out, *_ = exported
     empty = tmp_path / "imported/mlruns"
     first = import_records(tracker(empty), out)
     assert (len(first.imported), len(first.present), first.refused) == (18, 0, [])
@@ -70,7 +74,7 @@ def test_import_then_report_is_byte_identical_and_import_is_idempotent(
 
 
 def test_a_stale_record_is_refused_with_its_reason(exported, tmp_path):
-    out, _, _ = exported
+    out, *_ = exported
     copy = tmp_path / "results"
     shutil.copytree(out, copy)
     path, record = load_records(copy)[0]
@@ -132,7 +136,7 @@ def test_every_shipped_cell_is_the_mean_of_its_records_per_mesh_accuracies():
 
 def one_record_folder(exported, tmp_path, edit) -> tuple[Path, Path, dict]:
     """A results folder holding one exported record, changed by `edit(record)`."""
-    out, _, _ = exported
+    out, *_ = exported
     path, record = load_records(out)[0]
     edit(record)
     copy = tmp_path / "one" / path.relative_to(out)
@@ -144,7 +148,7 @@ def one_record_folder(exported, tmp_path, edit) -> tuple[Path, Path, dict]:
 def test_a_record_whose_tag_hash_differs_from_its_checked_hash_is_refused(exported, tmp_path):
     """Defect 1: the record's top-level hash was checked and its tags' hash stored, so a table fold's record
     carrying figure fold 0's hash in its tags made `meshseg.run category=figure fold=0` skip."""
-    out, _, _ = exported
+    out, *_ = exported
     records = load_records(out)
     other = next(r for _, r in records if r["tags"]["category"] != records[0][1]["tags"]["category"])
     folder, _, record = one_record_folder(
@@ -215,7 +219,7 @@ def test_two_imports_at_once_make_one_finished_run_per_config(exported, tmp_path
     Two processes import into 5 new stores in turn, both starting each import together (a barrier)."""
     import multiprocessing as mp
 
-    out, written, _ = exported
+    out, written, *_ = exported
     stores = [str(tmp_path / f"store{trial}") for trial in range(5)]
     for store in stores:
         tracker(Path(store))  # the store exists before the race, as after a first report or sweep
@@ -246,7 +250,7 @@ def test_two_imports_at_once_make_one_finished_run_per_config(exported, tmp_path
 
 def test_an_import_beside_a_live_fold_run_leaves_the_fold_its_config(exported, tmp_path):
     """Defect 3: an import during a sweep of the same configs ended the fold the sweep held FINISHED twice."""
-    out, written, _ = exported
+    out, written, *_ = exported
     _, record = load_records(out)[0]
     store = tracker(tmp_path / "store")
     held, _ = store.claim("a sweep's fold", {"config_hash": record["config_hash"]})  # live lease, this process
