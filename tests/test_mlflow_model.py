@@ -68,6 +68,9 @@ def test_the_logged_model_labels_a_mesh_as_meshseg_predict_does(fold, cache_dir,
 
 def test_the_model_is_listed_on_its_run_with_a_signature_and_an_example(fold):
     tracker, run, _, _ = fold
+    # MLflow finds the logged model behind a run's `model` path in its global tracking uri's store, not the
+    # client's (meshseg.predict.download_model): without this the test passed only after the one above
+    mlflow.set_tracking_uri(tracker.uri)
     run_id = run.info.run_id
     (output,) = tracker.client.get_run(run_id).outputs.model_outputs  # the run's Logged models
     model = tracker.client.get_logged_model(output.model_id)
