@@ -42,14 +42,10 @@ def temporary_files_in_the_session(tmp_path_factory):
     import tempfile
 
     folder = tmp_path_factory.mktemp("tempfiles")
-    saved, env = tempfile.tempdir, os.environ.get("TMPDIR")
-    tempfile.tempdir, os.environ["TMPDIR"] = str(folder), str(folder)
-    yield folder
-    tempfile.tempdir = saved
-    if env is None:
-        os.environ.pop("TMPDIR", None)
-    else:
-        os.environ["TMPDIR"] = env
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(tempfile, "tempdir", str(folder))
+        m.setenv("TMPDIR", str(folder))
+        yield folder
 
 
 #: fixtures of the tests that train folds (a store of runs, or a run of their own): those tests run first
