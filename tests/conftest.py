@@ -1,4 +1,5 @@
 import os
+import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -10,6 +11,9 @@ SHARED = REPO.parent / "shared"
 PSB_ARCHIVE = SHARED / "data/psb/LabeledDB_new.tar.xz"
 COSEG_ARCHIVE = SHARED / "data/coseg-fragment/coseg-fragment.tar.xz"
 SPLIT_FILE = SHARED / "data/splits/shapepfcn_splits.txt"
+#: the system's temporary folder, read before the session fixture below moves tempfile's (and TMPDIR) into
+#: pytest's root-only folder, where daemons running as their own users (mysql, postgres) cannot reach
+SYSTEM_TEMP = tempfile.gettempdir()
 
 
 def require(path: Path) -> Path:
@@ -39,8 +43,6 @@ def no_store_in_the_checkout():
 def temporary_files_in_the_session(tmp_path_factory):
     """Temporary folders the tests' libraries leave behind (MLflow's artifact downloads make one a call and never
     remove it) land in the session's folder, which pytest prunes, not in /tmp; subprocesses too (TMPDIR)."""
-    import tempfile
-
     folder = tmp_path_factory.mktemp("tempfiles")
     with pytest.MonkeyPatch.context() as m:
         m.setattr(tempfile, "tempdir", str(folder))

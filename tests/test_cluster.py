@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from conftest import REPO
+from conftest import REPO, SYSTEM_TEMP
 from mlflow import MlflowClient
 
 from meshseg.tracking import is_fold_run
@@ -44,10 +44,11 @@ def cluster(tmp_path_factory):
     if os.geteuid() != 0:
         pytest.fail("make cluster-test runs as root: it starts munged, slurmd and PostgreSQL")
     state = tmp_path_factory.mktemp("cluster")
-    # the daemons' own users (munge, mysql, postgres) must reach their folders: not under pytest's 0700 tmp
-    daemons = Path(tempfile.mkdtemp(prefix="meshseg-cluster-"))
+    # the daemons' own users (munge, mysql, postgres) must reach their folders and temporary files: not under
+    # pytest's 0700 tmp, where conftest points tempfile and TMPDIR for the session
+    daemons = Path(tempfile.mkdtemp(prefix="meshseg-cluster-", dir=SYSTEM_TEMP))
     daemons.chmod(0o755)
-    env = {**os.environ, "MESHSEG_CLUSTER_DIR": str(daemons), "MESHSEG_PYTHON": sys.executable}
+    env = {**os.environ, "TMPDIR": SYSTEM_TEMP, "MESHSEG_CLUSTER_DIR": str(daemons), "MESHSEG_PYTHON": sys.executable}
     up = subprocess.run(["bash", SCRIPT, "up"], env=env, capture_output=True, text=True, timeout=600)
     try:
         assert up.returncode == 0, up.stderr[-3000:]
