@@ -167,7 +167,10 @@ def test_schema(path):
     n = len(cols)
     assert m["groups"]
     for g in m["groups"]:
-        assert set(g) <= {"name", "overrides", "average", "published_average", "sets"}
+        assert set(g) <= {"name", "overrides", "average", "published_average", "sets", "also_average"}
+        names = [s["name"] for s in g["sets"]]
+        for extra in g.get("also_average", []):  # averages over part of the group's sets, no published number
+            assert set(extra) == {"label", "sets"} and set(extra["sets"]) < set(names), extra
         check_overrides(g.get("overrides") or [])
         assert g["average"] is None or isinstance(g["average"], str)
         assert len(g["published_average"]) == n

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from conftest import REPO, tiny_manifest, tiny_psb
 from omegaconf import OmegaConf
 
@@ -177,6 +178,41 @@ def test_the_manifests_pairs_make_one_block_each_and_report_paired_replaces_them
     # report.columns: a pair loses its block with either of its columns
     table, _, _ = report(path, [*args, "report.columns=[C,B]", f"report.out_dir={tiny / 'cols'}"])
     assert [(p.a.key, p.b.key) for p in table.pairs] == [("C", "B")]
+
+
+def test_an_also_average_row_averages_only_its_sets_in_the_table_and_the_paired_blocks(tiny):
+    """Set Two is category Small (meshes 3, 4: copies of 1, 2) where A (pred2) labels every face right, 100,
+    against 83.33 on One: the average over Two alone is 100, not the mean over both sets (91.67). C, on One
+    only, has nothing of Two to compare."""
+    small = tiny / "db/Small"
+    small.mkdir()
+    for new, old in (("3", "1"), ("4", "2")):
+        (small / f"{new}.off").write_text((tiny / f"db/Tiny/{old}.off").read_text())
+        (small / f"{new}_labels.txt").write_text((tiny / f"db/Tiny/{old}_labels.txt").read_text())
+        (tiny / "pred2" / f"{new}.lab").write_text((tiny / f"db/Tiny/{old}_labels.txt").read_text())
+    (tiny / "pred/3.lab").write_text("body\n1 2\n")
+    (tiny / "pred/4.lab").write_text("head\n1 2 3\n")
+    cols = [labellings(tiny, "A", "pred2"), labellings(tiny, "B", "pred"), labellings(tiny, "C", "pred2", sets=["One"])]
+    sets = [{"name": "One", "category": "Tiny", "published": [90.0] * 3}]
+    sets.append({"name": "Two", "category": "Small", "published": [91.0] * 3})
+    path = tiny_manifest(tiny, "study", cols, sets, 90.5, paired=[["A", "B"], ["C", "B"]])
+    doc = yaml.safe_load(path.read_text())
+    doc["groups"][0]["also_average"] = [{"label": "Average (Two)", "sets": ["Two"]}]
+    path.write_text(yaml.safe_dump(doc))
+    table, _, _ = report(path, [*run_args(tiny), "report.log=false", "report.n_boot=400", "report.results=null"])
+    assert [r.label for r in table.rows] == ["One", "Two", "Average", "Average (Two)"]
+    one, two, everything, only_two = ([c.value for c in r.cells[:2]] for r in table.rows)
+    assert one[0] == pytest.approx(250 / 3) and two == pytest.approx([100.0, two[1]]) and two[1] < 100
+    assert everything[0] == pytest.approx(275 / 3) and only_two == pytest.approx(two)
+    assert table.rows[3].cells[0].published is None and table.rows[3].cells[2].status == "n/a"  # C: One only
+    ab, cb = table.pairs
+    assert [(r.label, r.n_meshes) for r in ab.rows] == [("One", 2), ("Two", 2), ("Average", 4), ("Average (Two)", 2)]
+    assert ab.rows[3].value == pytest.approx(ab.rows[1].value) != pytest.approx(ab.rows[2].value)
+    assert [r.label for r in cb.rows] == ["One", "Average (1 of 2 sets)"]  # nothing of Two to compare
+    doc["groups"][0]["also_average"] = [{"label": "Average (Three)", "sets": ["Three"]}]
+    path.write_text(yaml.safe_dump(doc))
+    with pytest.raises(ManifestError, match=r"also_average Average \(Three\): sets \['Three'\] are not sets of"):
+        load_manifest(path)
 
 
 # --- curves: ---------------------------------------------------------------------------------------------

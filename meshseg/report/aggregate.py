@@ -191,7 +191,13 @@ def paired_rows(table: Table, differences, ident: tuple[str, ...], boot: Bootstr
     for row in table.rows:
         identity = (*ident[:1], row.kind, row.group, row.label, *ident[1:])
         if row.kind != "set":
-            members = [r for r in table.rows if r.kind == "set" and (row.kind == "total" or r.group == row.group)]
+            members = [
+                r
+                for r in table.rows
+                if r.kind == "set"
+                and (row.kind == "total" or r.group == row.group)
+                and (not row.sets or r.label in row.sets)
+            ]
             kept = [r for r in members if (r.group, r.label) in compared]
             if kept:
                 label = row.label if len(kept) == len(members) else f"{row.label} ({len(kept)} of {len(members)} sets)"

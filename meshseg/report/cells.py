@@ -83,6 +83,7 @@ class Row:
     kind: str  # set | average | total
     group: str
     cells: tuple[Cell, ...]
+    sets: tuple[str, ...] = ()  # an average over part of its group: those set rows (empty: all of them)
 
 
 @dataclass(frozen=True)

@@ -63,6 +63,8 @@ class Group:
     sets: tuple[Set, ...]
     average: str | None  # label of the group's average row, None: no such row
     published_average: tuple[float | None, ...]
+    #: more average rows, each over part of the group's sets: (label, set names), printed after `average`
+    also_average: tuple[tuple[str, tuple[str, ...]], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -192,7 +194,32 @@ def _group(value, n: int) -> Group:
         sets,
         value.get("average"),
         _numbers(value.get("published_average"), n, f"group {name} published_average"),
+        _also_average(value.get("also_average"), name, sets),
     )
+
+
+def _also_average(value, group: str, sets: tuple[Set, ...]) -> tuple[tuple[str, tuple[str, ...]], ...]:
+    """A group's `also_average: [{label, sets: [names of its sets]}]`: each an average row over those sets only
+    (e.g. the sets a choice was not made on); the sets in the group's order."""
+    if value is None:
+        return ()
+    shape = isinstance(value, list) and all(isinstance(v, dict) and set(v) == {"label", "sets"} for v in value)
+    if not shape:
+        raise _Invalid(f"group {group}: also_average must be a list of {{label: ..., sets: [names]}}, got {value!r}")
+    names = [s.name for s in sets]
+    out = []
+    for v in value:
+        given = v["sets"] if isinstance(v["sets"], list) else []
+        unknown = [str(x) for x in given if str(x) not in names]
+        if not given or unknown:
+            raise _Invalid(
+                f"group {group}, also_average {v['label']}: sets {unknown or v['sets']!r} are not sets of the group; "
+                f"its sets: {', '.join(names)}"
+            )
+        out.append((str(v["label"]), tuple(x for x in names if x in map(str, given))))
+    if len({label for label, _ in out}) != len(out):
+        raise _Invalid(f"group {group}: also_average labels must be distinct")
+    return tuple(out)
 
 
 def _restricted(columns: tuple[Column, ...], sets: dict, groups: tuple[Group, ...]) -> tuple[Column, ...]:

@@ -324,6 +324,11 @@ def _table(manifest: Manifest, overrides, metric: str, sets, boot: Bootstrap, re
         rows += members
         if group.average and len(members) == len(group.sets):
             rows.append(average_row(table, group.average, "average", members, group.published_average, boot))
+        for label, names in group.also_average:
+            part = [m for m in members if m.label in names]
+            if len(part) == len(names):  # not when report.sets left some of them out
+                unpublished = (None,) * len(table.columns)
+                rows.append(replace(average_row(table, label, "average", part, unpublished, boot), sets=names))
     if manifest.total and keep is None:
         every = [r for r in rows if r.kind == "set"]
         rows.append(average_row(table, manifest.total, "total", every, manifest.published_total, boot))
