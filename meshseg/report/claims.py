@@ -92,6 +92,11 @@ def _budget(cells: list[Cell]) -> str:
     return ", ".join(sorted({c.budget for c in cells if c.budget and c.column.predictions is None}))
 
 
+def _group_average(table: Table, group: str):
+    """The group's own average row (not an also_average row over part of it), or None."""
+    return next((r for r in table.rows if r.kind == "average" and r.group == group and not r.sets), None)
+
+
 def _published_difference(table: Table, claim: Claim, rows, ia: int, ib: int | None) -> float | None:
     """The claim's difference in the paper's numbers: the group's published averages when the claim takes
     every set of the group, else the mean over its sets of the published set differences."""
@@ -99,7 +104,7 @@ def _published_difference(table: Table, claim: Claim, rows, ia: int, ib: int | N
         return None
     group = claim.group or table.manifest.groups[0].name
     if claim.sets is None:
-        avg = next((r for r in table.rows if r.kind == "average" and r.group == group and not r.sets), None)
+        avg = _group_average(table, group)
         if avg is not None:
             pa, pb = avg.cells[ia].published, avg.cells[ib].published
             return None if pa is None or pb is None else pa - pb
@@ -117,7 +122,7 @@ def _identity(table: Table, claim: Claim, row) -> tuple[str, ...]:
     if row is None:
         if claim.sets is not None:
             return ("claim", claim.id)
-        row = next((r for r in table.rows if r.kind == "average" and r.group == group and not r.sets), None)
+        row = _group_average(table, group)
         if row is None:
             return ("claim", claim.id)
     if claim.test == "refinement":
@@ -200,7 +205,7 @@ def judge_table(spec: TableSpec, table: Table, verdicts: list[Verdict], full: fl
     table contradicted; partial: some run column complete and within `partial`; not reproduced: complete
     columns, none within `partial`; not yet run: no run column complete; no data: no run can be made here."""
     group = spec.group or table.manifest.groups[0].name
-    avg = next((r for r in table.rows if r.kind == "average" and r.group == group and not r.sets), None)
+    avg = _group_average(table, group)
     runs = [j for j, c in enumerate(table.columns) if c.overrides is not None and c.predictions is None]
     cells = [avg.cells[j] for j in runs] if avg is not None else []
     cols = [(c.column.label, c.value, c.published) for c in cells]

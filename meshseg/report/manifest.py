@@ -209,14 +209,14 @@ def _also_average(value, group: str, sets: tuple[Set, ...]) -> tuple[tuple[str, 
     names = [s.name for s in sets]
     out = []
     for v in value:
-        given = v["sets"] if isinstance(v["sets"], list) else []
-        unknown = [str(x) for x in given if str(x) not in names]
+        given = [str(x) for x in v["sets"]] if isinstance(v["sets"], list) else []
+        unknown = [x for x in given if x not in names]
         if not given or unknown:
             raise _Invalid(
                 f"group {group}, also_average {v['label']}: sets {unknown or v['sets']!r} are not sets of the group; "
                 f"its sets: {', '.join(names)}"
             )
-        out.append((str(v["label"]), tuple(x for x in names if x in map(str, given))))
+        out.append((str(v["label"]), tuple(x for x in names if x in given)))
     if len({label for label, _ in out}) != len(out):
         raise _Invalid(f"group {group}: also_average labels must be distinct")
     return tuple(out)
