@@ -26,6 +26,7 @@ from omegaconf import DictConfig, OmegaConf
 from meshseg import CONF_DIR
 from meshseg.cli import command, user_errors
 from meshseg.job import FoldJob, FoldOutcome, check_argv
+from meshseg.memory import peak_mib, reset_peak
 from meshseg.signals import terminate_interrupts
 from meshseg.sweep import in_sweep, job_done, job_files, job_overrides, job_progress, sweep_tag
 from meshseg.timing import Timings
@@ -73,6 +74,7 @@ def run(cfg: DictConfig) -> FoldOutcome:
             if run_id is None:
                 return job.skipped(holder)
         params = FoldRecord.params(job.config)
+        peak_is_this_runs = reset_peak()  # a sweep's jobs share the process: the peak from here on is this run's
         with (
             tracker.run(key.name, tags, params, run_id) as run_id,
             tracker.system_metrics(run_id, t["system_metrics"]),
@@ -145,6 +147,8 @@ def run(cfg: DictConfig) -> FoldOutcome:
                 with timings("pictures"):
                     tracker.log_pictures(run_id, preds.meshes, labels, rows, renders)
             metrics.update({f"time/{k}_s": v for k, v in timings.items()})
+            if peak_is_this_runs and (peak := peak_mib()) is not None:
+                metrics["memory/peak_rss_mib"] = peak
             tracker.log_metrics(run_id, metrics, model_id)  # the model's metrics too (the UI's Models tab)
     if job.checkpoints is not None:  # the fold is recorded: nothing left to resume
         shutil.rmtree(job.checkpoints, ignore_errors=True)

@@ -241,6 +241,7 @@ def test_one_run_follows_the_tracking_contract_and_reruns_skip(store, tmp_path):
     ) == ("synthetic", "cup", "1", "5fold", "smoke", "cnn1d", "3", "graphcut_agd", "local")
     m = run.data.metrics
     assert 0 <= m["test/acc_raw"] <= 1 and 0 <= m["test/acc"] <= 1
+    assert 200 < m["memory/peak_rss_mib"] < 8192  # the process holds torch at least; the peak is this run's
     assert run.data.params["budget.epochs"] == "2" and run.data.params["category"] == "cup"
     # the name leads with what differs between a sweep's runs; a list is one param; no tracking settings
     assert run.info.run_name == "cup f1 · cnn1d 3B local · 5fold · smoke"

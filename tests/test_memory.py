@@ -1,0 +1,21 @@
+"""A run's peak resident memory: it sees an allocation, and a reset forgets an earlier one."""
+
+import sys
+
+import numpy as np
+import pytest
+
+from meshseg.memory import peak_mib, reset_peak
+
+pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the kernel's high-water mark: Linux")
+
+
+def test_peak_sees_an_allocation_and_a_reset_forgets_it():
+    assert reset_peak()
+    before = peak_mib()
+    block = np.ones(50_000_000 // 8 * 4)  # 191 MiB, every page touched
+    assert peak_mib() >= before + 180
+    del block
+    assert peak_mib() >= before + 180  # a peak stays after the memory is freed ...
+    assert reset_peak()
+    assert peak_mib() < before + 60  # ... until the next run resets it
