@@ -3,8 +3,9 @@ publishing and `meshseg.results` rebuild the config `meshseg.run` gave a run."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
+from pathlib import Path
 
 from omegaconf import DictConfig
 
@@ -34,6 +35,36 @@ def run_config(overrides) -> DictConfig:
 
     try:
         with hydra_scope():
-            return compose("run", overrides=list(overrides))
+            return typed_like_defaults(compose("run", overrides=list(overrides)), overrides)
     except HydraException as e:
         raise ConfigError(" ".join(str(e).split("\nConfig search path")[0].split())) from None
+
+
+def typed_like_defaults(cfg: DictConfig, overrides: Iterable[str]) -> DictConfig:
+    """`cfg`, where a value override wrote a number of the other kind than the value it replaces, with the
+    override's number in the replaced value's kind, when that is exact: refine.lam=2 is refine.lam=2.0 and
+    budget.epochs=15.0 is budget.epochs=15. So one setting has one config hash however it is typed (the
+    hash sees 2 and 2.0 as different values). The values replaced are those the group choices alone
+    (model=..., budget=...) compose; no override of another kind of value is touched."""
+    from hydra import compose
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from omegaconf import OmegaConf
+
+    parsed = OverridesParser.create().parse_overrides(list(overrides))
+    groups = [o.input_line for o in parsed if (Path(CONF_DIR) / o.key_or_group).is_dir()]
+    numbers = [
+        (o.key_or_group, o.value())
+        for o in parsed
+        if not o.is_delete() and type(o.value()) in (int, float) and not o.key_or_group.startswith("hydra.")
+    ]
+    if not numbers:
+        return cfg
+    with hydra_scope():
+        defaults = compose("run", overrides=groups)
+    for key, value in numbers:
+        replaced = OmegaConf.select(defaults, key, default=None)
+        if type(replaced) is float and type(value) is int:
+            OmegaConf.update(cfg, key, float(value))
+        elif type(replaced) is int and type(value) is float and value.is_integer():
+            OmegaConf.update(cfg, key, int(value))
+    return cfg

@@ -12,6 +12,7 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from meshseg import CONF_DIR
+from meshseg.config import typed_like_defaults
 from meshseg.data.datasets import MeshDataset, build_dataset
 from meshseg.data.splits import Fold, build_split
 from meshseg.errors import ConfigError
@@ -84,6 +85,8 @@ class FoldJob:
         `overrides`: the command line's (recorded as provenance)."""
         from meshseg.tracking import FoldRecord, RunKey, fold_identity
 
+        if overrides:
+            cfg = typed_like_defaults(cfg, overrides)  # refine.lam=2 is refine.lam=2.0: one identity
         check_config(cfg)
         # resolved once (${...} evaluated): the parts are built from the very values the identity hashes
         run = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))

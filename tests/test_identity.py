@@ -88,3 +88,22 @@ def test_budget_cpu2_is_cpu_trained_in_bf16_and_a_run_of_its_own():
     moved = identity(["dataset=psb", "budget=cpu2"], "Airplane")
     study = identity(["dataset=psb", "budget=cpu", "trainer.precision=bf16-mixed"], "Airplane")
     assert len({base, moved, study}) == 3 and base == HASHES["cnn1d 3B cpu psb"]
+
+
+def test_a_number_has_one_identity_however_the_command_line_types_it():
+    """refine.lam=2 is the default 2.0 and budget.epochs=15.0 the default 15: the same config hash (as the report
+    and `meshseg.results` compose it; `meshseg.run`'s skip is in tests/test_run.py). 2.5 is another value."""
+    from meshseg.config import run_config
+
+    def composed(*overrides):
+        return fold_identity(run_config(["dataset=psb", "budget=cpu", *overrides]), "Airplane", FOLD, DATA)
+
+    base = composed()[1]
+    assert base == HASHES["cnn1d 3B cpu psb"]
+    config, moved = composed("refine.lam=2")
+    assert moved == base and type(config["refine"]["lam"]) is float
+    config, epochs = composed("budget.epochs=15.0")
+    assert epochs == base and type(config["budget"]["epochs"]) is int
+    assert composed("budget.epochs=16.0")[1] == composed("budget.epochs=16")[1] != base
+    assert composed("refine.lam=2.5")[1] != base
+    assert composed("budget.epochs=15.5")[0]["budget"]["epochs"] == 15.5  # not exact as an integer: left as typed

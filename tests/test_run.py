@@ -280,7 +280,8 @@ def test_one_run_follows_the_tracking_contract_and_reruns_skip(store, tmp_path):
         assert z["labels_1"].shape == (int(table[1].split(",")[1]),)
         assert np.allclose(z["probs_1"].astype(np.float32).sum(axis=1), 1, atol=1e-2)
 
-    again = meshseg_run(*SMALL, "category=cup", "fold=1")
+    # refine.lam=2 is the default 2.0 written as an integer: the same config, so the same run
+    again = meshseg_run(*SMALL, "category=cup", "fold=1", "refine.lam=2")
     assert again.returncode == 0 and "skip: cup f1 · cnn1d 3B local · 5fold · smoke" in again.stdout + again.stderr
     assert len(runs(store)) == 1
 
