@@ -19,7 +19,6 @@ skipped, never mixed in.
 
 from __future__ import annotations
 
-import csv
 import functools
 import json
 import logging
@@ -64,11 +63,7 @@ def record_of(tracker: Tracker, run) -> dict:
     # a download without a destination is a new temporary folder MLflow never removes: two per run per export
     with tempfile.TemporaryDirectory(prefix="meshseg-export-") as tmp:
         config = yaml.safe_load(Path(tracker.client.download_artifacts(run_id, FoldRecord.CONFIG, tmp)).read_text())
-        with open(tracker.client.download_artifacts(run_id, FoldRecord.PER_MESH, tmp), newline="") as f:
-            rows = [
-                {k: (v if k == "mesh" else int(v) if k == "faces" else float(v)) for k, v in row.items()}
-                for row in csv.DictReader(f)
-            ]
+        rows = FoldRecord.read_per_mesh(tracker.client.download_artifacts(run_id, FoldRecord.PER_MESH, tmp))
     return {
         "format": FORMAT,
         "config_hash": run.data.tags["config_hash"],

@@ -421,3 +421,14 @@ def test_git_sha_is_dirty_for_changed_code_not_for_rewritten_reports(tmp_path):
     (tmp_path / "meshseg" / "a.py").write_text("x = 2\n")
     assert git_sha(tmp_path) == sha + "+dirty"
     assert git_sha(tmp_path / "missing") == "unknown"
+
+
+def test_the_per_mesh_table_reads_back_typed_in_its_column_order(tmp_path):
+    from meshseg.tracking import FoldRecord
+
+    rows = [{"acc": 0.5, "mesh": "007", "faces": 12, "area": 1.25, "acc_raw": 0.25}]
+    path = tmp_path / FoldRecord.PER_MESH
+    path.write_text(FoldRecord.per_mesh_csv(rows))
+    assert path.read_text().splitlines() == ["mesh,faces,area,acc_raw,acc", "007,12,1.25,0.25,0.5"]
+    (back,) = FoldRecord.read_per_mesh(path)
+    assert back == rows[0] and back["mesh"] == "007" and type(back["faces"]) is int  # an id keeps its zeros

@@ -7,7 +7,6 @@ frame can be read from shipped results records (`results/`, meshseg.results) wit
 
 from __future__ import annotations
 
-import csv
 import logging
 import tempfile
 from pathlib import Path
@@ -40,9 +39,8 @@ def _mesh_accuracies(client, run) -> list[tuple[str, dict[str, float]]]:
     from its per-mesh table (FoldRecord.PER_MESH)."""
     try:
         with tempfile.TemporaryDirectory() as tmp:
-            path = client.download_artifacts(run.info.run_id, FoldRecord.PER_MESH, tmp)
-            with open(path, newline="") as f:
-                return [(row["mesh"], _percent(row)) for row in csv.DictReader(f)]
+            rows = FoldRecord.read_per_mesh(client.download_artifacts(run.info.run_id, FoldRecord.PER_MESH, tmp))
+            return [(row["mesh"], _percent(row)) for row in rows]
     except Exception as e:  # a FINISHED run without a readable table is damage in the store, not a missing fold
         raise TrackingError(
             f"run {run.info.run_id} ({run.info.run_name}): cannot read {'/'.join(FoldRecord.MESH_METRICS)} from "

@@ -3,7 +3,9 @@
 
 from __future__ import annotations
 
+import csv
 import dataclasses
+import io
 import json
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -127,6 +129,24 @@ class FoldRecord:
         """The run's params as the UI lists them: the resolved config flattened, a list as one value, the
         tracking settings left out (they say where a run is kept, not what it is)."""
         return {k: v for k, v in flatten(config, lists=False).items() if k.split(".")[0] != "tracking"}
+
+    @staticmethod
+    def per_mesh_csv(rows: list[dict]) -> str:
+        """The per-mesh table (PER_MESH) as its file holds it: PER_MESH_COLUMNS, in that order."""
+        buf = io.StringIO()
+        writer = csv.DictWriter(buf, fieldnames=list(FoldRecord.PER_MESH_COLUMNS))
+        writer.writeheader()
+        writer.writerows(rows)
+        return buf.getvalue()
+
+    @staticmethod
+    def read_per_mesh(path) -> list[dict]:
+        """The rows of a per-mesh table file (PER_MESH): the mesh id a string, faces an integer, the rest floats."""
+        with open(path, newline="") as f:
+            return [
+                {k: (v if k == "mesh" else int(v) if k == "faces" else float(v)) for k, v in row.items()}
+                for row in csv.DictReader(f)
+            ]
 
     @staticmethod
     def predictions(meshes, probabilities, raw, labels) -> dict[str, np.ndarray]:

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import csv
-import io
 import json
 import logging
 import random
@@ -221,11 +219,7 @@ class Tracker:
         with tempfile.TemporaryDirectory() as tmp:
             d = Path(tmp)
             (d / R.CONFIG).write_text(config_yaml)
-            buf = io.StringIO()
-            writer = csv.DictWriter(buf, fieldnames=list(R.PER_MESH_COLUMNS))
-            writer.writeheader()
-            writer.writerows(rows)
-            (d / R.PER_MESH).write_text(buf.getvalue())
+            (d / R.PER_MESH).write_text(R.per_mesh_csv(rows))
             arrays = R.prediction_arrays(predictions or {})
             for name in (R.CONFIG, R.PER_MESH):
                 self.client.log_artifact(run_id, str(d / name))
