@@ -19,13 +19,14 @@ from omegaconf import DictConfig
 
 from meshseg import CONF_DIR
 from meshseg.cli import usage, user_errors
+from meshseg.config import hydra_scope
 from meshseg.errors import MeshsegError
 from meshseg.report.cells import Table
 from meshseg.report.claims import claims_from_config, summary_table
 from meshseg.report.claims_file import is_claims_file, load_claims
 from meshseg.report.config import check_config, compose_config, hydra_argv
 from meshseg.report.manifest import load_manifest
-from meshseg.report.publish import build, publish, summary
+from meshseg.report.publish import build, publish, requested, summary
 
 
 def report_from_config(cfg: DictConfig) -> tuple[Table, list[Path], str | None]:
@@ -49,7 +50,7 @@ def run_app(argv, app, config_name: str, doc: str) -> None:
     usage(doc, argv)
     with user_errors():
         args = hydra_argv(argv, config_name)
-        _check_manifest_file(args)
+        _check_before_hydra(args, config_name)
     saved = sys.argv
     sys.argv = [saved[0], *args]  # hydra.main reads sys.argv
     try:
@@ -58,13 +59,20 @@ def run_app(argv, app, config_name: str, doc: str) -> None:
         sys.argv = saved
 
 
-def _check_manifest_file(app_args) -> None:
-    """A missing or malformed manifest (or claims file) refused before Hydra makes the command's log folder.
-    Any other exception is a bug: left for the app to meet again, where Hydra reports it with its traceback."""
-    path = next((a.split("=", 1)[1] for a in app_args if a.startswith("manifest=")), "")
+def _check_before_hydra(app_args, config_name: str) -> None:
+    """A missing or malformed manifest (or claims file), or a `report.*` setting it does not allow, refused
+    before Hydra makes the command's log folder. Any other exception is a bug: left for the app to meet again,
+    where Hydra reports it with its traceback."""
+    from hydra import compose
+
     try:
-        if path:
-            load_claims(path) if is_claims_file(path) else load_manifest(path)
+        with hydra_scope():
+            cfg = compose(config_name, overrides=[a for a in app_args if not a.startswith("-")])
+        check_config(cfg)
+        if is_claims_file(cfg.manifest):
+            load_claims(cfg.manifest)
+        else:
+            requested(load_manifest(cfg.manifest), cfg.report)
     except MeshsegError:
         raise
     except Exception:  # reported by the app, under Hydra's error handling

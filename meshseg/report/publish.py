@@ -58,11 +58,7 @@ def import_results(manifest: Manifest, cfg: DictConfig) -> None:
 def build(manifest: Manifest, cfg: DictConfig) -> Table:
     """The manifest's table from the runs, with the app config's run overrides and `report.*` settings."""
     s = cfg.report
-    if s.get("columns") is not None:
-        manifest = manifest.only_columns([str(k) for k in s.columns])
-    sets = None if s.sets is None else list(s.sets)
-    paired = None if s.get("paired") is None else OmegaConf.to_container(s.paired)  # replaces the manifest's
-    check_request(manifest, s.metric, sets, paired)  # a mistyped setting opens no store
+    manifest, sets, paired = requested(manifest, s)
     import_results(manifest, cfg)
     table = collect(manifest, run_overrides(cfg), metric=s.metric, sets=sets, paired=paired, boot=bootstrap(s))
     # the settings that decide which runs a table lacks go into its `meshseg.reproduce` command
@@ -72,6 +68,17 @@ def build(manifest: Manifest, cfg: DictConfig) -> Table:
     if s.get("results", "results") != "results":
         settings += (f"report.results={'null' if s.results is None else s.results}",)
     return replace(table, settings=table.settings + settings)
+
+
+def requested(manifest: Manifest, s: DictConfig) -> tuple[Manifest, list | None, list | None]:
+    """What `report.*` (`s`) asks of the manifest, checked against it: the manifest with only report.columns,
+    report.sets and report.paired (None: the manifest's own). A mistyped setting opens no store."""
+    if s.get("columns") is not None:
+        manifest = manifest.only_columns([str(k) for k in s.columns])
+    sets = None if s.sets is None else list(s.sets)
+    paired = None if s.get("paired") is None else OmegaConf.to_container(s.paired)  # replaces the manifest's
+    check_request(manifest, s.metric, sets, paired)
+    return manifest, sets, paired
 
 
 def bootstrap(settings: DictConfig) -> Bootstrap:
