@@ -45,7 +45,8 @@ def typed_like_defaults(cfg: DictConfig, overrides: Iterable[str]) -> DictConfig
     override's number in the replaced value's kind, when that is exact: refine.lam=2 is refine.lam=2.0 and
     budget.epochs=15.0 is budget.epochs=15. So one setting has one config hash however it is typed (the
     hash sees 2 and 2.0 as different values). The values replaced are those the group choices alone
-    (model=..., budget=...) compose; no override of another kind of value is touched."""
+    (model=..., budget=...) compose. Numbers inside a list or dict, and a number where the default is null
+    or not a number, stay as typed."""
     from hydra import compose
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from omegaconf import OmegaConf
@@ -62,6 +63,9 @@ def typed_like_defaults(cfg: DictConfig, overrides: Iterable[str]) -> DictConfig
     with hydra_scope():
         defaults = compose("run", overrides=groups)
     for key, value in numbers:
+        current = OmegaConf.select(cfg, key, default=None)
+        if type(current) is not type(value) or current != value:
+            continue  # a later override of the key (or a delete) decided its value
         replaced = OmegaConf.select(defaults, key, default=None)
         if type(replaced) is float and type(value) is int:
             OmegaConf.update(cfg, key, float(value))

@@ -18,7 +18,7 @@ def reset_peak() -> bool:
 
 def peak_mib() -> float | None:
     """The process's peak resident memory in MiB (VmHWM) since it started or since `reset_peak`; None where
-    /proc does not say. Memory of child processes (data loader workers) is not in it."""
+    /proc does not say. Memory of child processes (data loader and feature workers) is not in it."""
     try:
         with open("/proc/self/status") as f:
             for line in f:

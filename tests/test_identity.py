@@ -107,3 +107,7 @@ def test_a_number_has_one_identity_however_the_command_line_types_it():
     assert composed("budget.epochs=16.0")[1] == composed("budget.epochs=16")[1] != base
     assert composed("refine.lam=2.5")[1] != base
     assert composed("budget.epochs=15.5")[0]["budget"]["epochs"] == 15.5  # not exact as an integer: left as typed
+    # the last override of a key decides, as in Hydra (a manifest's value, then the command line's)
+    assert composed("refine.lam=2", "refine.lam=2.5")[0]["refine"]["lam"] == 2.5
+    assert composed("budget.epochs=15.0", "budget.epochs=7")[0]["budget"]["epochs"] == 7
+    assert "lam" not in composed("refine.lam=2", "~refine.lam")[0]["refine"]

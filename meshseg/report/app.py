@@ -65,14 +65,17 @@ def _check_before_hydra(app_args, config_name: str) -> None:
     where Hydra reports it with its traceback."""
     from hydra import compose
 
+    path = next((a.split("=", 1)[1] for a in app_args if a.startswith("manifest=")), "")
     try:
+        if path:
+            load_claims(path) if is_claims_file(path) else load_manifest(path)
+        if not path or any(a.startswith("-") for a in app_args):
+            return  # Hydra's own flags (--cfg job, -cn NAME) are the app's to read
         with hydra_scope():
-            cfg = compose(config_name, overrides=[a for a in app_args if not a.startswith("-")])
+            cfg = compose(config_name, overrides=list(app_args))
         check_config(cfg)
-        if is_claims_file(cfg.manifest):
-            load_claims(cfg.manifest)
-        else:
-            requested(load_manifest(cfg.manifest), cfg.report)
+        if not is_claims_file(path):
+            requested(load_manifest(path), cfg.report)
     except MeshsegError:
         raise
     except Exception:  # reported by the app, under Hydra's error handling
