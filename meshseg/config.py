@@ -52,7 +52,7 @@ def typed_like_defaults(cfg: DictConfig, overrides: Iterable[str]) -> DictConfig
     from omegaconf import OmegaConf
 
     parsed = OverridesParser.create().parse_overrides(list(overrides))
-    groups = [o.input_line for o in parsed if (Path(CONF_DIR) / o.key_or_group).is_dir()]
+    groups = [o.input_line for o in parsed if (Path(CONF_DIR) / o.key_or_group).is_dir()]  # a method's, too
     numbers = [
         (o.key_or_group, o.value())
         for o in parsed
@@ -61,7 +61,7 @@ def typed_like_defaults(cfg: DictConfig, overrides: Iterable[str]) -> DictConfig
     if not numbers:
         return cfg
     with hydra_scope():
-        defaults = compose("run", overrides=groups)
+        defaults = compose("run", overrides=[*groups, *_search_path(parsed)])
     for key, value in numbers:
         current = OmegaConf.select(cfg, key, default=None)
         if type(current) is not type(value) or current != value:
@@ -72,3 +72,15 @@ def typed_like_defaults(cfg: DictConfig, overrides: Iterable[str]) -> DictConfig
         elif type(replaced) is int and type(value) is float and value.is_integer():
             OmegaConf.update(cfg, key, int(value))
     return cfg
+
+
+def _search_path(parsed) -> list[str]:
+    """The `hydra.searchpath` override the group choices compose with: the overrides' own, else the running
+    Hydra app's (a method added in a folder of its own, docs/adding-a-method.md, is found only there)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    given = [o.input_line for o in parsed if o.key_or_group == "hydra.searchpath"]
+    if given or not HydraConfig.initialized() or not HydraConfig.get().searchpath:
+        return given
+    quoted = ("'" + str(p).replace("\\", "\\\\").replace("'", "\\'") + "'" for p in HydraConfig.get().searchpath)
+    return [f"hydra.searchpath=[{','.join(quoted)}]"]
