@@ -67,15 +67,15 @@ def _check_before_hydra(app_args, config_name: str) -> None:
 
     path = next((a.split("=", 1)[1] for a in app_args if a.startswith("manifest=")), "")
     try:
-        if path:
-            load_claims(path) if is_claims_file(path) else load_manifest(path)
+        claims = bool(path) and is_claims_file(path)
+        manifest = load_claims(path) if claims else load_manifest(path) if path else None
         if not path or any(a.startswith("-") for a in app_args):
             return  # Hydra's own flags (--cfg job, -cn NAME) are the app's to read
         with hydra_scope():
             cfg = compose(config_name, overrides=list(app_args))
         check_config(cfg)
-        if not is_claims_file(path):
-            requested(load_manifest(path), cfg.report)
+        if not claims:
+            requested(manifest, cfg.report)
     except MeshsegError:
         raise
     except Exception:  # reported by the app, under Hydra's error handling
