@@ -186,7 +186,20 @@ def test_progress_counts_the_cells_no_run_can_fill_apart():
     rows.append(Row("Cup", "set", "PSB", [gap]))
     line = progress(Table(load_manifest(SYNTH), rows, (), "acc", 0.95)).text()
     assert line.startswith("1 of 2 cells complete (1 more unavailable: no data here to run them); 1 fold runs missing.")
-    assert "about 90 s on one process" in line  # the one missing fold at the column's median fold time
+    assert "about 90 s on one process" in line  # the one missing fold at the set's median fold time
+
+
+def test_progress_times_each_sets_missing_folds_at_that_sets_median():
+    """Sets cost several-fold different times (classes x boosting rounds): a set's missing folds take its own
+    median fold time; a set with no timed fold takes the column's median over all its runs."""
+    heavy = Cell(COL, None, folds=5, missing=(3, 4), seconds=(400.0, 420.0, 440.0), category="Armadillo")
+    light = Cell(COL, None, n_meshes=5, folds=5, seconds=(100.0,) * 5, category="Cup")
+    fresh = Cell(COL, None, folds=5, missing=(0, 1, 2, 3, 4), category="Fish")
+    rows = [Row(c.category, "set", "PSB", [c]) for c in (heavy, light, fresh)]
+    done = progress(Table(load_manifest(SYNTH), rows, (), "acc", 0.95))
+    assert done.fold_seconds == {"A": 100.0}  # the column's median over its 8 timed runs
+    assert done.seconds == 2 * 420.0 + 5 * 100.0  # the column's median alone would say 7 x 100
+    assert "about 22 min on one process at each set's median fold time so far (the column's where" in done.text()
 
 
 def test_progress_sums_each_columns_run_time():
@@ -522,8 +535,10 @@ def test_a_deleted_fold_is_incomplete_and_reproduce_launches_only_it(smoke_store
     assert line.startswith("8 of 9 cells complete; 1 fold runs missing. Next: `python -m meshseg.reproduce ")
     rf = runs_of(tmp_path / "mlruns", filter_string="tags.model = 'rf'")  # the 5 left
     seconds = np.median([(r.info.end_time - r.info.start_time) / 1000 for r in rf])
-    took = re.search(r"about (\d+) s on one process at the median fold time so far \(RF (\d+) s\)\. ", line)
-    assert took and int(took[1]) == int(took[2]) == round(seconds)  # one missing fold at the median fold time
+    (cup0,) = [r for r in rf if r.data.tags["category"] == "cup"]  # the set's one fold left
+    took = re.search(r"about (\d+) s on one process at each set's median .* none: RF (\d+) s\)\. ", line)
+    assert took and int(took[2]) == round(seconds)  # the column's median fold time
+    assert int(took[1]) == round((cup0.info.end_time - cup0.info.start_time) / 1000)  # the missing fold at Cup's
     # and what the column's finished runs took, summed (the time a finished column reports)
     spent = re.search(r"Run time so far, summed over runs: .*RF (\d+) (s|min) \((\d+) runs\)", line)
     total = sum((r.info.end_time - r.info.start_time) / 1000 for r in rf)

@@ -144,7 +144,7 @@ class Progress:
     cells: int
     runs_missing: int
     command: str
-    seconds: float  # the missing runs of the timed columns, at their median fold time
+    seconds: float  # the missing runs of the timed columns, at their set's median fold time (else the column's)
     fold_seconds: dict[str, float]  # median wall time of a fold, by the label of a column that lacks runs
     untimed: tuple[str, ...]  # labels of the columns lacking runs that have no timed fold yet
     unavailable: int = 0  # set cells no run can fill here (their dataset or category is not at hand)
@@ -159,7 +159,8 @@ class Progress:
         if not self.fold_seconds:
             return line + " — no fold timed yet to say how long." + self.spent_text()
         per = ", ".join(f"{k} {v:.0f} s" for k, v in self.fold_seconds.items())
-        line += f" — about {_duration(self.seconds)} on one process at the median fold time so far ({per})"
+        line += f" — about {_duration(self.seconds)} on one process at each set's median fold time so far"
+        line += f" (the column's where a set has none: {per})"
         line += f", plus the columns not timed yet: {', '.join(self.untimed)}." if self.untimed else "."
         return line + self.spent_text()
 
@@ -188,6 +189,12 @@ def progress(table: Table) -> Progress:
     todo = [c for c in cells if c.status == "incomplete"]
     lacking = list(dict.fromkeys(c.column.label for c in todo))
     medians = {k: float(np.median(times[k])) for k in lacking if times[k]}
+
+    def fold_time(c: Cell) -> float:
+        # a set's own folds where it has any: sets differ several-fold (classes x boosting rounds, faces)
+        own = [s for s in c.seconds if np.isfinite(s)]
+        return float(np.median(own)) if own else medians[c.column.label]
+
     path = table.manifest.path
     try:
         path = path.resolve().relative_to(Path.cwd())
@@ -201,7 +208,7 @@ def progress(table: Table) -> Progress:
         cells=len(cells),
         runs_missing=sum(len(c.missing) for c in todo),
         command=shlex.join(args),
-        seconds=sum(len(c.missing) * medians[c.column.label] for c in todo if c.column.label in medians),
+        seconds=sum(len(c.missing) * fold_time(c) for c in todo if c.column.label in medians),
         fold_seconds=medians,
         untimed=tuple(k for k in lacking if k not in medians),
         unavailable=sum(c.status == "unavailable" for c in run_cells),
