@@ -140,7 +140,7 @@ def check_config(cfg: DictConfig) -> None:
     _check_statistics(cfg.report)
     _check_folders(cfg.report)
     _check_selection(cfg.report)
-    for key in ("log", *(("dry_run",) if "dry_run" in cfg.report else ())):
+    for key in ("log", "boundaries", *(("dry_run",) if "dry_run" in cfg.report else ())):
         if not isinstance(cfg.report[key], bool):
             raise ConfigError(f"report.{key}={cfg.report[key]} must be true or false")
 

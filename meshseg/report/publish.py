@@ -67,7 +67,12 @@ def build(manifest: Manifest, cfg: DictConfig) -> Table:
         settings += (f"report.columns=[{','.join(c.key for c in manifest.columns)}]",)
     if s.get("results", "results") != "results":
         settings += (f"report.results={'null' if s.results is None else s.results}",)
-    return replace(table, settings=table.settings + settings)
+    table = replace(table, settings=table.settings + settings)
+    if s.get("boundaries"):
+        from meshseg.report.boundaries import where_errors_lie
+
+        table = replace(table, boundaries=where_errors_lie(table, run_overrides(cfg)))
+    return table
 
 
 def requested(manifest: Manifest, s: DictConfig) -> tuple[Manifest, list | None, list | None]:

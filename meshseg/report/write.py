@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from meshseg.report.boundaries import BAND_NAMES
+from meshseg.report.boundaries import summary as boundaries_summary
 from meshseg.report.cells import Cell, Table, progress
 from meshseg.report.config import METRIC_TEXT
 from meshseg.report.curves import learning_curve_figure
@@ -119,7 +121,39 @@ def markdown(table: Table) -> str:
             if (done := [r for r in gains if r.kind == "set" and r.value is not None])
         ]
         out += ["", f"Sets the refinement raised: {', '.join(helped)}."]
+    if table.boundaries is not None:
+        out += ["", *_boundaries_md(table)]
     return "\n".join(out) + "\n"
+
+
+def _boundaries_md(table: Table) -> list[str]:
+    """report.boundaries' block: each column's wrong area by face rings from the true part boundary, then
+    each pair's difference by ring, over the meshes both have (boundaries.csv has every mesh)."""
+    frame, unread = table.boundaries
+    labels = {c.key: c.label for c in table.columns}
+    pairs = [(p.a.key, p.b.key) for p in table.pairs]
+    lines = boundaries_summary(frame, pairs)
+    aside = f"; {unread} test meshes left out: no per-face labels here (results/ records carry none)" if unread else ""
+    out = [
+        "**Where the errors lie** (wrong area in % of each test mesh's area, by face rings from the nearest "
+        "true part boundary, ring 0 on it; mean over meshes; a pair's row: its accuracy difference a − b in "
+        f"points, split the same way{aside})",
+        "",
+        "| | meshes | all | " + " | ".join(f"ring {b}" for b in BAND_NAMES) + " |",
+        "|---|---|---|" + "---|" * len(BAND_NAMES),
+    ]
+    for r in lines.itertuples(index=False):
+        name = " − ".join(labels.get(k, k) for k in r.what.split(" − "))
+        signed = " − " in r.what
+        values = [_num(v, signed) for v in r[2:]]
+        out.append(f"| {name} | {r.meshes} | " + " | ".join(values) + " |")
+    return out if len(lines) else out[:1] + ["", "No test mesh has per-face labels here."]
+
+
+def boundaries_csv(table: Table) -> str:
+    """report.boundaries' frame: one line per (column, test mesh), its wrong area in % by ring band."""
+    frame, _ = table.boundaries
+    return frame.to_csv(index=False, float_format="%.4f")
 
 
 def _has_refinement(table: Table) -> bool:
@@ -376,7 +410,7 @@ def png_bytes(fig, dpi: int = 110) -> bytes:
 
 
 #: files a report writes only when it has their content (paired blocks, a learning curve, refined runs)
-OPTIONAL_FILES = frozenset({"paired.csv", "learning_curve.png", "refinement.csv"})
+OPTIONAL_FILES = frozenset({"paired.csv", "learning_curve.png", "refinement.csv", "boundaries.csv"})
 
 
 def write_report(table: Table, out_dir: str | Path) -> list[Path]:
@@ -396,6 +430,8 @@ def write_report(table: Table, out_dir: str | Path) -> list[Path]:
         contents["learning_curve.png"] = png_bytes(learning_curve_figure(table))
     if _has_refinement(table):
         contents["refinement.csv"] = refinement_csv(table)
+    if table.boundaries is not None:
+        contents["boundaries.csv"] = boundaries_csv(table)
     for name in OPTIONAL_FILES.difference(contents):  # one an earlier report wrote would describe other runs
         (out / name).unlink(missing_ok=True)
     return write_files(out, contents)
