@@ -67,10 +67,10 @@ def test_a_pairs_line_is_b_minus_a_wrong_area_over_the_meshes_both_have():
     frame = pd.DataFrame(
         [row("a", "1", 4.0, 1.0), row("a", "2", 6.0, 3.0), row("b", "1", 1.0, 0.5), row("a", "3", 9.0, 9.0)]
     )
-    lines = summary(frame, [("a", "b")]).set_index("what")
-    assert lines.loc["a", "meshes"] == 3 and lines.loc["a", "err"] == pytest.approx(19 / 3)
-    assert lines.loc["a − b", "meshes"] == 1 and lines.loc["a − b", "err"] == pytest.approx(-3.0)
-    assert lines.loc["a − b", "err_0"] == pytest.approx(-0.5)
+    lines = summary(frame, [("a", "b")]).set_index(["column", "minus"])
+    assert lines.loc[("a", ""), "meshes"] == 3 and lines.loc[("a", ""), "err"] == pytest.approx(19 / 3)
+    assert lines.loc[("a", "b"), "meshes"] == 1 and lines.loc[("a", "b"), "err"] == pytest.approx(-3.0)
+    assert lines.loc[("a", "b"), "err_0"] == pytest.approx(-0.5)
 
 
 @pytest.mark.parametrize("metric", ["acc", "acc_raw"])

@@ -99,34 +99,37 @@ def where_errors_lie(table: Table, overrides=()) -> tuple[pd.DataFrame, int]:
                 bands = error_by_band(pred, mesh.labels, mesh.face_areas, rings[key_mesh])
                 rows.append({"group": group, "row": r.row, "column": key, "mesh": r.mesh, **bands})
     if unread:
-        log.info("where errors lie: %d test meshes have no per-face labels here (results records carry none)", unread)
+        log.info("where errors lie: %d test meshes have no per-face labels to read here", unread)
     return pd.DataFrame(rows, columns=list(COLUMNS)), unread
 
 
 def _predictions(client, run_id) -> dict[str, np.ndarray] | None:
     """The run's per-face arrays (FoldRecord.PREDICTIONS), or None where it has none (a results record, or a
     run imported from one)."""
+    from mlflow.exceptions import MlflowException
+
     if not isinstance(run_id, str) or "/" in run_id:  # a results record's path stands for its run id
         return None
     try:
         with tempfile.TemporaryDirectory() as tmp:
             with np.load(client.download_artifacts(run_id, FoldRecord.PREDICTIONS, tmp)) as z:
                 return {k: z[k] for k in z.files}
-    except Exception:  # no such artifact: a run imported from results/
+    except (MlflowException, OSError):  # no such artifact: a run imported from results/
         return None
 
 
 def summary(frame: pd.DataFrame, pairs) -> pd.DataFrame:
-    """Mean over meshes of each column's wrong area by band, then of each pair's accuracy difference a − b by
-    band (points; over the meshes both have, as the paired comparison takes them): one line each."""
+    """Mean over meshes of each column's wrong area by band (`minus` empty), then of each pair's accuracy
+    difference a − b by band (points; over the meshes both have, as the paired comparison takes them): one
+    line each, `column` a and `minus` b."""
     bands = ["err", *(f"err_{b}" for b in BAND_NAMES)]
     lines = []
     for key, part in frame.groupby("column", sort=False):
-        lines.append({"what": key, "meshes": len(part), **part[bands].mean().to_dict()})
+        lines.append({"column": key, "minus": "", "meshes": len(part), **part[bands].mean().to_dict()})
     for a, b in pairs:
         keys = ["group", "row", "mesh"]
         both = frame[frame["column"] == a].merge(frame[frame["column"] == b], on=keys, suffixes=("_a", "_b"))
         if len(both):
             gap = {c: float((both[f"{c}_b"] - both[f"{c}_a"]).mean()) for c in bands}
-            lines.append({"what": f"{a} − {b}", "meshes": len(both), **gap})
-    return pd.DataFrame(lines, columns=["what", "meshes", *bands])
+            lines.append({"column": a, "minus": b, "meshes": len(both), **gap})
+    return pd.DataFrame(lines, columns=["column", "minus", "meshes", *bands])

@@ -143,9 +143,8 @@ def _boundaries_md(table: Table) -> list[str]:
         "|---|---|---|" + "---|" * len(BAND_NAMES),
     ]
     for r in lines.itertuples(index=False):
-        name = " − ".join(labels.get(k, k) for k in r.what.split(" − "))
-        signed = " − " in r.what
-        values = [_num(v, signed) for v in r[2:]]
+        name = labels[r.column] + (f" − {labels[r.minus]}" if r.minus else "")
+        values = [_num(v, bool(r.minus)) for v in r[3:]]
         out.append(f"| {name} | {r.meshes} | " + " | ".join(values) + " |")
     return out if len(lines) else out[:1] + ["", "No test mesh has per-face labels here."]
 
