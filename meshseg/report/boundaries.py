@@ -69,7 +69,7 @@ def where_errors_lie(table: Table, overrides=()) -> tuple[pd.DataFrame, int]:
     prefix = "labels_" if table.metric == "acc" else "labels_raw_"
     m = table.manifest
     groups, columns = {g.name: g for g in m.groups}, {c.key: c for c in m.columns}
-    rows, unread, rings, datasets = [], 0, {}, {}
+    rows, unread, loaded, datasets = [], 0, {}, {}
     for (group, key), part in table.meshes.groupby(["group", "column"], sort=False):
         column = columns[key]
         if column.predictions is not None and table.metric != "acc":
@@ -87,16 +87,17 @@ def where_errors_lie(table: Table, overrides=()) -> tuple[pd.DataFrame, int]:
                 if column.predictions is None and (arrays is None or f"{prefix}{r.mesh}" not in arrays):
                     unread += 1
                     continue
-                mesh = dataset.load(r.category, r.mesh)
-                key_mesh = (spec, r.category, r.mesh)  # every column of a set scores the same meshes
-                if key_mesh not in rings:
-                    rings[key_mesh] = boundary_rings(mesh.faces, mesh.labels)
+                key_mesh = (spec, r.category, r.mesh)  # every column of a set scores the same meshes: load once
+                if key_mesh not in loaded:
+                    mesh = dataset.load(r.category, r.mesh)
+                    loaded[key_mesh] = mesh, boundary_rings(mesh.faces, mesh.labels)
+                mesh, rings = loaded[key_mesh]
                 pred = (
                     labelling(column.predictions, mesh, cfg.paths.cache_dir)
                     if column.predictions is not None
                     else arrays[f"{prefix}{r.mesh}"]
                 )
-                bands = error_by_band(pred, mesh.labels, mesh.face_areas, rings[key_mesh])
+                bands = error_by_band(pred, mesh.labels, mesh.face_areas, rings)
                 rows.append({"group": group, "row": r.row, "column": key, "mesh": r.mesh, **bands})
     if unread:
         log.info("where errors lie: %d test meshes have no per-face labels to read here", unread)
