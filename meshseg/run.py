@@ -67,14 +67,16 @@ def run(cfg: DictConfig) -> FoldOutcome:
         return job.skipped(holder)
     command_line = " ".join(["python -m meshseg.run", *(overrides or [])])
     tags = {**job.tags, **system_tags("meshseg.run", command_line, job.tags["git_sha"]), **sweep_tag()}
-    with terminate_interrupts():  # from the claim on: SIGTERM ends the run KILLED wherever it lands
+    params = FoldRecord.params(job.config)
+    peak_is_this_runs = reset_peak()  # a sweep's jobs share the process: the peak from here on is this run's
+    # from the claim on: SIGTERM ends the run KILLED wherever it lands, so nothing may run between the claim
+    # and tracker.run, which ends it (a signal there left the claimed run RUNNING)
+    with terminate_interrupts():
         run_id = None
         if t["skip_finished"]:  # claim the config: a concurrent sweep may have taken it since the check
             run_id, holder = tracker.claim(key.name, tags, Lease(t["heartbeat_s"], t["lease_timeout_s"]))
             if run_id is None:
                 return job.skipped(holder)
-        params = FoldRecord.params(job.config)
-        peak_is_this_runs = reset_peak()  # a sweep's jobs share the process: the peak from here on is this run's
         with (
             tracker.run(key.name, tags, params, run_id) as run_id,
             tracker.system_metrics(run_id, t["system_metrics"]),
