@@ -295,12 +295,20 @@ def test_cf_figure_has_no_published_numbers():
     assert [c["overrides"] for c in m["columns"]] == [
         ["model=rf", f"features={k}"] for k in ["cf0", "cf1", "cf0_1", "cf1_5", "cf0_5"]
     ]
-    assert m["overrides"] == ["dataset=psb", "split=loo"]
+    # refined as every other method (docs/deviations.md B12); acc_raw comes from the same runs
+    assert m["overrides"] == ["dataset=psb", "split=loo", "refine=graphcut_agd"]
     (g,) = m["groups"]
     assert [s["category"] for s in g["sets"]] == LPSB  # "all sets"
     assert all(v is None for s in g["sets"] for v in s["published"])
     assert all(v is None for v in g["published_average"])
     assert "absent" in m["note"]
+
+
+def test_table2_is_one_budget():
+    # every column at the psb default (cpu, fp32), so every paired comparison is of one precision (issue 47)
+    m = load("table2_psb_5fold")
+    assert not [o for c in m["columns"] for o in c["overrides"] if o.startswith("budget")]
+    assert not [o for o in m["overrides"] if o.startswith("budget")]
 
 
 def test_ablation_agd_is_table2_3b():
