@@ -296,7 +296,7 @@ def test_cf_figure_has_no_published_numbers():
         ["model=rf", f"features={k}"] for k in ["cf0", "cf1", "cf0_1", "cf1_5", "cf0_5"]
     ]
     # refined as every other method (docs/deviations.md B12); acc_raw comes from the same runs
-    assert m["overrides"] == ["dataset=psb", "split=loo", "refine=graphcut_agd"]
+    assert m["overrides"] == ["dataset=psb", "split=loo", "refine=graphcut_agd", "tracking.log_model=false"]
     (g,) = m["groups"]
     assert [s["category"] for s in g["sets"]] == LPSB  # "all sets"
     assert all(v is None for s in g["sets"] for v in s["published"])
