@@ -14,7 +14,12 @@ Import recreates each record as a FINISHED run with the same tags, params, metri
 idempotent, also beside another import or a sweep (each run is claimed like a fold's), each record is
 checked whole before its run is made, and a record whose config hash the
 current code would no longer give to its overrides and fold (the config changed since) is reported and
-skipped, never mixed in.
+skipped, never mixed in. A record is refused, with one line naming its file and why, when it is not whole
+(accuracies outside [0, 1], per-mesh rows that are not its fold's test meshes, a `test/acc` that is not their
+mean, a tag over MLflow's limit, ...), when its file is over MAX_RECORD_BYTES, cannot be read or is a
+symbolic link (as is a linked folder), or when another record of the import has its config hash (both);
+the other records are imported all the same. The import exits non-zero when it refused any record. SIGTERM
+or Ctrl-C ends it with one `error:` line, the record under way removed again: no run is left RUNNING.
 """
 
 from __future__ import annotations
@@ -25,17 +30,18 @@ import logging
 import math
 import os
 import re
+import stat
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from meshseg.cli import command, usage
+from meshseg.cli import ERROR_EXIT, command, fail, usage
 from meshseg.config import hydra_scope, run_config
 from meshseg.data.io import check_output_folder
 from meshseg.errors import ConfigError
-from meshseg.tracking import FoldRecord, RunKey, Tracker, check_store_exists, fold_identity
+from meshseg.tracking import FoldRecord, RunKey, Tracker, check_store_exists, fold_identity, whole_call
 
 log = logging.getLogger(__name__)
 
@@ -80,8 +86,16 @@ def record_of(tracker: Tracker, run) -> dict:
 
 #: what a dataset, category or config hash may be called where it names a folder or file under results/
 _PLAIN = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.\-]*")
-#: the tags a record must carry: the run's identity (what its config hash was computed from) and its place
-REQUIRED_TAGS = ("config_hash", "dataset", "category", "fold", "data_hash", "overrides", "fold_ids", "model")
+#: the tags a record must carry: the run's identity (what its config hash was computed from), its place and its name
+REQUIRED_TAGS = (
+    *("config_hash", "dataset", "category", "fold", "data_hash", "overrides", "fold_ids", "model"),
+    *("branches", "features", "split", "refine", "budget"),
+)
+#: a record is a few kB (results/ holds none over 6 kB): a file over this is refused unread
+MAX_RECORD_BYTES = 1_000_000
+#: how far `test/acc` (`test/acc_raw`) may lie from the mean of the per-mesh rows' accuracies: float rounding
+#: (run.py logs np.mean of the very rows the record holds; results/ differs by 1.1e-16 at most)
+MEAN_TOLERANCE = 1e-9
 
 
 def plain_name(value) -> bool:
@@ -107,7 +121,8 @@ def _number(v) -> bool:
 
 def check_record(record: dict) -> str | None:
     """Why a record cannot be imported as it is, or None: every part checked before any run is created."""
-    for problem in (_identity_problem, _config_problem, _numbers_problem, _per_mesh_problem, _times_problem):
+    problems = (_identity_problem, _config_problem, _numbers_problem, _per_mesh_problem, _means_problem, _times_problem)
+    for problem in problems:
         why = problem(record)
         if why is not None:
             return why
@@ -126,8 +141,50 @@ def _identity_problem(record: dict) -> str | None:
         return f"tags lack {lacking}"
     if tags["config_hash"] != chash:
         return f"its tags name config hash {tags['config_hash']}, the record {chash}"
+    if why := _tag_size_problem(tags):
+        return why
     bad = next((key for key in ("dataset", "category") if not plain_name(tags[key])), None)
-    return None if bad is None else f"tags.{bad} {tags[bad]!r} is not a plain name"
+    if bad is not None:
+        return f"tags.{bad} {tags[bad]!r} is not a plain name"
+    bad = next((key for key in ("fold", "branches") if not re.fullmatch(r"[0-9]+", tags[key])), None)
+    if bad is not None:
+        return f"tags.{bad} {tags[bad]!r} is not a whole number"
+    if not _strings(_json(tags["overrides"])):
+        return "tags.overrides is not a JSON list of overrides"
+    if _fold_ids(tags) is None:
+        return 'tags.fold_ids is not JSON {"train": [mesh ids], "test": [mesh ids]}'
+    return None
+
+
+def _tag_size_problem(tags: dict) -> str | None:
+    """MLflow's limits on a tag (a sqlite store does not enforce them: a 50 MB tag was stored as is)."""
+    from mlflow.utils.validation import MAX_ENTITY_KEY_LENGTH, MAX_TAG_VAL_LENGTH
+
+    for key, value in tags.items():
+        if len(key) > MAX_ENTITY_KEY_LENGTH:
+            return f"tag name {key[:40]!r}... is {len(key)} characters, over MLflow's limit of {MAX_ENTITY_KEY_LENGTH}"
+        if len(value) > MAX_TAG_VAL_LENGTH:
+            return f"tags.{key[:40]} is {len(value)} characters, over MLflow's limit of {MAX_TAG_VAL_LENGTH} for a tag"
+    return None
+
+
+def _json(text: str):
+    """`text` read as JSON, or None (deep nesting is a RecursionError, not a ValueError)."""
+    try:
+        return json.loads(text)
+    except (ValueError, RecursionError):
+        return None
+
+
+def _strings(value) -> bool:
+    return isinstance(value, list) and all(isinstance(x, str) for x in value)
+
+
+def _fold_ids(tags: dict) -> dict | None:
+    """tags.fold_ids, the fold's train and test mesh ids; None when it is not that."""
+    ids = _json(tags["fold_ids"])
+    ok = isinstance(ids, dict) and all(_strings(ids.get(k)) for k in ("train", "test"))
+    return ids if ok else None
 
 
 def _config_problem(record: dict) -> str | None:
@@ -162,6 +219,42 @@ def _per_mesh_problem(record: dict) -> str | None:
         bad = [k for k in FoldRecord.PER_MESH_COLUMNS[1:] if not _number(row.get(k))]
         if bad:
             return f"per_mesh[{i}] ({row['mesh']}): {bad} missing or not numbers"
+        if why := _row_problem(row):
+            return f"per_mesh[{i}] ({row['mesh']}): {why}"
+    # the report averages these rows: exactly the fold's test meshes, each once
+    meshes, test = [row["mesh"] for row in rows], _fold_ids(record["tags"])["test"]
+    if sorted(meshes) != sorted(test):
+        extra, missing = sorted(set(meshes) - set(test)), sorted(set(test) - set(meshes))
+        twice = sorted({m for m in meshes if meshes.count(m) > 1})
+        parts = [
+            *([f"not test meshes of its fold: {extra[:5]}"] if extra else []),
+            *([f"missing: {missing[:5]}"] if missing else []),
+            *([f"more than once: {twice[:5]}"] if twice else []),
+        ]
+        return f"per_mesh rows are not the fold's test meshes (tags.fold_ids): {'; '.join(parts)}"
+    return None
+
+
+def _row_problem(row: dict) -> str | None:
+    if not isinstance(row["faces"], int) or row["faces"] < 1:
+        return f"faces {row['faces']!r} is not a whole number >= 1"
+    if row["area"] <= 0:
+        return f"area {row['area']!r} is not > 0"
+    bad = next((k for k in FoldRecord.MESH_METRICS if not 0 <= row[k] <= 1), None)
+    return None if bad is None else f"{bad} {row[bad]!r} is not an accuracy in [0, 1]"
+
+
+def _means_problem(record: dict) -> str | None:
+    """The fold's accuracies, each the mean of its per-mesh rows' (as meshseg.run computes them)."""
+    metrics, rows = record["metrics"], record["per_mesh"]
+    for name, column in ((FoldRecord.ACC, "acc"), (FoldRecord.ACC_RAW, "acc_raw")):
+        if name not in metrics:
+            return f"metrics lack {name}"
+        if not 0 <= metrics[name] <= 1:
+            return f"metrics {name} {metrics[name]!r} is not an accuracy in [0, 1]"
+        mean = math.fsum(row[column] for row in rows) / len(rows)
+        if abs(metrics[name] - mean) > MEAN_TOLERANCE:
+            return f"metrics {name} {metrics[name]!r} is not the mean of its per_mesh {column} ({mean!r})"
     return None
 
 
@@ -206,16 +299,65 @@ def export(tracker: Tracker, out: Path) -> tuple[int, int]:
 
 def load_records(root: Path) -> list[tuple[Path, dict]]:
     """Every record under `root`, sorted by path; a file that is not a record is one error naming it."""
-    out = []
-    for path in sorted(Path(root).rglob("*.json")):
-        try:
-            record = json.loads(path.read_text())
-        except (OSError, ValueError) as e:
-            raise ConfigError(f"{path}: not a results record ({e})") from None
-        if not isinstance(record, dict) or record.get("format") != FORMAT or "config_hash" not in record:
-            raise ConfigError(f"{path}: not a results record of format {FORMAT}")
-        out.append((path, record))
-    return out
+    records, unread = read_records(root)
+    if unread:
+        path, why = unread[0]
+        raise ConfigError(f"{path}: {why}")
+    return records
+
+
+def read_records(root: Path) -> tuple[list[tuple[Path, dict]], list[tuple[Path, str]]]:
+    """The records under `root` (its `*.json` files), sorted by path, and the paths that are none, each with
+    why: a file that cannot be read, is over MAX_RECORD_BYTES or is not a record, and any symbolic link,
+    to a file or a folder (where it points is no part of `root`)."""
+    records, unread = [], []
+
+    def unreadable(e: OSError) -> None:  # a folder os.walk cannot list, which it would skip without a word
+        unread.append((Path(e.filename), f"cannot be read ({e.strerror or e})"))
+
+    for folder, dirs, files in os.walk(root, onerror=unreadable):  # links to folders are listed, never followed
+        for name in sorted(dirs + files):
+            path = Path(folder) / name
+            if path.is_symlink() and (name in dirs or name.endswith(".json")):
+                unread.append((path, f"a symbolic link to {os.readlink(path)}: not followed (records are plain files)"))
+            elif name in files and name.endswith(".json"):
+                why, record = _read_record(path)
+                if why is None:
+                    records.append((path, record))
+                else:
+                    unread.append((path, why))
+    return sorted(records, key=lambda x: x[0]), sorted(unread)
+
+
+def _read_record(path: Path) -> tuple[str | None, dict | None]:
+    try:
+        info = path.stat()
+        if not stat.S_ISREG(info.st_mode):
+            return "not a regular file", None
+        if info.st_size > MAX_RECORD_BYTES:
+            return f"{info.st_size} bytes, over the {MAX_RECORD_BYTES} a record may have: not read", None
+        record = json.loads(path.read_bytes())
+    except OSError as e:
+        return f"cannot be read ({e.strerror or e})", None
+    except (ValueError, RecursionError) as e:
+        return f"not a results record ({str(e)[:200]})", None
+    if not isinstance(record, dict) or record.get("format") != FORMAT or "config_hash" not in record:
+        return f"not a results record of format {FORMAT}", None
+    return None, record
+
+
+def _same_hash(records: list[tuple[Path, dict]]) -> dict[Path, str]:
+    """Why each record that shares its config hash with another is refused: which is the run is unknown."""
+    paths: dict[str, list[Path]] = {}
+    for path, record in records:
+        if isinstance(record["config_hash"], str):
+            paths.setdefault(record["config_hash"], []).append(path)
+    return {
+        path: f"config hash {h} is also that of {', '.join(str(o) for o in same if o != path)}: both refused, keep one"
+        for h, same in paths.items()
+        if len(same) > 1
+        for path in same
+    }
 
 
 #: the overrides that differ between the folds of one study
@@ -261,11 +403,22 @@ class ImportReport:
 def import_records(tracker: Tracker, root: Path) -> ImportReport:
     """Recreate the records under `root` as FINISHED runs of the tracker's experiment (see module doc).
     Each record is checked whole first; its run is claimed like a fold run's (so two imports, or an import
-    beside a sweep, never make two FINISHED runs of one config), and removed again if it cannot be made."""
+    beside a sweep, never make two FINISHED runs of one config), and removed again if it cannot be made.
+    A path under `root` that is no record is refused, the rest imported. SIGTERM and Ctrl-C end the import as
+    they end a fold (KeyboardInterrupt), the record under way removed, never left RUNNING."""
+    from meshseg.signals import terminate_interrupts
+
+    with terminate_interrupts():
+        return _import_records(tracker, root)
+
+
+def _import_records(tracker: Tracker, root: Path) -> ImportReport:
     report = ImportReport()
+    records, report.refused = read_records(root)
+    same_hash = _same_hash(records)
     have = {r.data.tags.get("config_hash") for r in tracker.runs("attributes.status = 'FINISHED'")}
-    for path, record in load_records(root):
-        why = check_record(record)
+    for path, record in records:
+        why = same_hash.get(path) or check_record(record)
         if why is not None:
             report.refused.append((path, why))
             continue
@@ -279,18 +432,23 @@ def import_records(tracker: Tracker, root: Path) -> ImportReport:
             report.refused.append((path, f"config hash {chash} is stale: {why}"))
             continue
         tags = {**record["tags"], "config_hash": chash, "imported_from": str(path)}
-        run_id, _ = tracker.claim(run_name(record["tags"]), tags, start_time=record["start_time"])
-        if run_id is None:  # another import, or a sweep, holds this config
-            report.present.append(path)
-            continue
+        run_id = None
         try:
+            with whole_call():  # an interrupt during the claim waits for the run's id, so that it is removed below
+                run_id, _ = tracker.claim(run_name(record["tags"]), tags, start_time=record["start_time"])
+            if run_id is None:  # another import, or a sweep, holds this config
+                report.present.append(path)
+                continue
             _fill(tracker, run_id, record)
         except BaseException:
-            tracker.client.set_terminated(run_id, "KILLED")
-            tracker.client.delete_run(run_id)  # no half-made run stays
+            if run_id is not None:
+                with whole_call():  # no half-made run stays, even if a second signal comes
+                    tracker.client.set_terminated(run_id, "KILLED")
+                    tracker.client.delete_run(run_id)
             raise
         have.add(chash)
         report.imported.append(path)
+    report.refused.sort()
     return report
 
 
@@ -335,10 +493,15 @@ def main(argv=None) -> None:
             written, unchanged = export(tracker, root)
             print(f"exported to {root}: {written} records written, {unchanged} unchanged")
         else:
-            rep = import_records(tracker, root)
+            try:
+                rep = import_records(tracker, root)
+            except KeyboardInterrupt as e:  # SIGTERM or Ctrl-C: the runs made stay, the one under way is removed
+                fail(f"import from {root} interrupted ({e}): no record is half-imported; run it again for the rest")
             for path, why in rep.refused:
                 print(f"refused {path}: {why}", file=sys.stderr)
             print(f"import from {root} into {tracker.uri}: {rep.summary()}")
+            if rep.refused:
+                sys.exit(ERROR_EXIT)
 
 
 if __name__ == "__main__":

@@ -27,6 +27,7 @@ from meshseg.tracking.store import (
     interrupt,
     search_runs,
     store_uri,
+    whole_call,
 )
 from meshseg.tracking.sweeps import close_parent, open_parent, sweep_key
 from meshseg.tracking.tracker import Tracker
@@ -59,4 +60,5 @@ __all__ = [
     "sweep_key",
     "system_tags",
     "versions",
+    "whole_call",
 ]

@@ -104,7 +104,9 @@ def interrupt(reason: str) -> None:
 
 
 @contextmanager
-def _whole_call():
+def whole_call():
+    """A block (a store call, or several that must end together) that runs to its end before an interrupt
+    (`interrupt`) takes effect: the interrupt is raised as the outermost such block ends."""
     if threading.current_thread() is not threading.main_thread():  # signals interrupt the main thread only
         yield
         return
@@ -130,7 +132,7 @@ class WholeCalls:
             return attr
 
         def call(*args, **kwargs):
-            with _whole_call():
+            with whole_call():
                 return attr(*args, **kwargs)
 
         return call
