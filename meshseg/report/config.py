@@ -25,6 +25,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from meshseg.config import hydra_scope
 from meshseg.data.io import check_output_folder
 from meshseg.errors import ConfigError
+from meshseg.report.claims_file import check_manifests, is_claims_file, load_claims
 from meshseg.tracking import FoldRecord
 
 #: what the table's header says each per-mesh metric is (FoldRecord.MESH_METRICS: after, before refinement)
@@ -143,6 +144,8 @@ def check_config(cfg: DictConfig) -> None:
     for key in ("log", "boundaries", *(("dry_run",) if "dry_run" in cfg.report else ())):
         if not isinstance(cfg.report[key], bool):
             raise ConfigError(f"report.{key}={cfg.report[key]} must be true or false")
+    if is_claims_file(cfg.manifest):  # the tables its claims name, before the first of them is built
+        check_manifests(load_claims(cfg.manifest))
 
 
 def _count(value, least: int) -> bool:

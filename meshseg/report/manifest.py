@@ -6,6 +6,7 @@ what is wrong with it (`_Invalid`), and every problem reaches the user as one Ma
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -17,6 +18,14 @@ from meshseg.errors import ConfigError, ManifestError
 PREDICTION_FORMATS = ("psb_labels",)
 #: what a learning curve's x counts per fold run (`curves: {x: ...}`; meshseg/report/curves.py)
 CURVE_X = ("samples", "distinct")
+#: the keys each part of a manifest takes (experiments/README.md's schema); any other is refused
+MANIFEST_KEYS = (
+    *("name", "title", "source", "note", "compared_with", "overrides"),
+    *("columns", "paired", "curves", "groups", "total"),
+)
+COLUMN_KEYS = ("key", "label", "overrides", "predictions", "sets")
+GROUP_KEYS = ("name", "overrides", "average", "published_average", "also_average", "sets")
+SET_KEYS = ("name", "category", "published", "test_meshes")
 
 
 @dataclass(frozen=True)
@@ -129,6 +138,14 @@ class _Invalid(Exception):
     """One problem of a manifest's content; load_manifest adds the file's name."""
 
 
+def _known(value: dict, keys: tuple[str, ...], where: str, what: str) -> None:
+    """Refuse a key outside the schema, naming the known ones: a typo would otherwise be dropped without a word
+    (a column's `overide:` makes it a published-only column, its runs neither counted nor launched)."""
+    unknown = [str(k) for k in value if k not in keys]
+    if unknown:
+        raise _Invalid(f"{where}unknown key {unknown[0]!r}: {what} takes {', '.join(keys)}")
+
+
 def _overrides(value, where: str) -> tuple[str, ...]:
     if value is None:
         return ()
@@ -145,12 +162,16 @@ def _numbers(value, n: int, where: str) -> tuple[float | None, ...]:
     for v in value:
         if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float))):
             raise _Invalid(f"{where}: {v!r} is not a number")
+        if v is not None and not math.isfinite(v):
+            raise _Invalid(f"{where}: {v!r} is not a finite number (null: no published number)")
     return tuple(None if v is None else float(v) for v in value)
 
 
 def _predictions(value, key: str) -> Predictions | None:
     if value is None:
         return None
+    if isinstance(value, dict):
+        _known(value, ("path", "format"), f"column {key}, predictions: ", "predictions")
     if not isinstance(value, dict) or set(value) != {"path", "format"} or value["format"] not in PREDICTION_FORMATS:
         raise _Invalid(f"column {key}: predictions must be {{path: ..., format: one of {PREDICTION_FORMATS}}}")
     return Predictions(str(value["path"]), str(value["format"]))
@@ -160,6 +181,7 @@ def _column(value, i: int) -> Column:
     """One entry of `columns:` (its `sets:` are read once the sets are known: _restricted)."""
     if not isinstance(value, dict) or not {"key", "label"} <= set(value):
         raise _Invalid(f"columns[{i}]: needs key and label")
+    _known(value, COLUMN_KEYS, f"column {value['key']}: ", "a column")
     over = value.get("overrides")
     over = None if over is None else _overrides(over, f"column {value['key']}")
     pred = _predictions(value.get("predictions"), value["key"])
@@ -179,12 +201,16 @@ def _set(value, n: int, group: str) -> Set:
     if not isinstance(value, dict) or "name" not in value:
         raise _Invalid(f"group {group}: each set needs a name")
     name = value["name"]
+    _known(value, SET_KEYS, f"group {group}, set {name}: ", "a set")
     published = _numbers(value.get("published"), n, f"set {name} published")
     return Set(str(name), str(value.get("category", name)), published, value.get("test_meshes"))
 
 
-def _group(value, n: int) -> Group:
+def _group(value, i: int, n: int) -> Group:
+    if not isinstance(value, dict):
+        raise _Invalid(f"groups[{i}]: a group is a mapping with name and sets, got {value!r}")
     name = str(value.get("name", "?"))
+    _known(value, GROUP_KEYS, f"group {name}: ", "a group")
     sets = tuple(_set(s, n, name) for s in value.get("sets") or [])
     if not sets:
         raise _Invalid(f"group {name} has no sets")
@@ -203,6 +229,9 @@ def _also_average(value, group: str, sets: tuple[Set, ...]) -> tuple[tuple[str, 
     (e.g. the sets a choice was not made on); the sets in the group's order."""
     if value is None:
         return ()
+    for v in value if isinstance(value, list) else ():
+        if isinstance(v, dict):
+            _known(v, ("label", "sets"), f"group {group}, also_average {v.get('label')}: ", "an also_average row")
     shape = isinstance(value, list) and all(isinstance(v, dict) and set(v) == {"label", "sets"} for v in value)
     if not shape:
         raise _Invalid(f"group {group}: also_average must be a list of {{label: ..., sets: [names]}}, got {value!r}")
@@ -220,6 +249,26 @@ def _also_average(value, group: str, sets: tuple[Set, ...]) -> tuple[tuple[str, 
     if len({label for label, _ in out}) != len(out):
         raise _Invalid(f"group {group}: also_average labels must be distinct")
     return tuple(out)
+
+
+def _labels(groups: tuple[Group, ...], total) -> None:
+    """Each row label names one row of its group: two sets of one name would pool their meshes into both cells,
+    an average row named as a set reads as that set. The total row's label is no other row's. Groups may repeat
+    each other's labels, as the paper's Table 3 does (a set Vases and a row Average in each of its blocks)."""
+    every: dict[str, str] = {}
+    for g in groups:
+        rows = [(s.name, "a set") for s in g.sets] + [(str(x), "an also_average row") for x, _ in g.also_average]
+        rows += [(str(g.average), "the average row")] if g.average is not None else []
+        seen: dict[str, str] = {}
+        for label, what in rows:
+            if label in seen:
+                both = f"{seen[label]} and {what} are both labelled"
+                both = "two sets are named" if seen[label] == what == "a set" else both
+                raise _Invalid(f"group {g.name}: {both} {label!r}; each row of a group needs its own label")
+            seen[label] = what
+            every.setdefault(label, f"{what} of group {g.name}")
+    if total is not None and str(total) in every:
+        raise _Invalid(f"total: the total row and {every[str(total)]} are both labelled {str(total)!r}")
 
 
 def _restricted(columns: tuple[Column, ...], sets: dict, groups: tuple[Group, ...]) -> tuple[Column, ...]:
@@ -266,6 +315,9 @@ def _pairs(value, keys: list[str]) -> tuple[tuple[str, str], ...]:
     bad = [list(p) for p in pairs if len(p) != 2]
     if bad:
         raise _Invalid(f"paired: {bad} are not pairs [a, b] of column keys")
+    same = [list(p) for p in pairs if p[0] == p[1]]
+    if same:
+        raise _Invalid(f"paired: {same} pair a column with itself; a pair is two different columns [a, b]")
     return pairs
 
 
@@ -273,6 +325,8 @@ def _curves(value, keys: list[str]) -> Curves | None:
     """`curves: {x: samples|distinct, series: {name: [column keys in order of increasing budget]}}`."""
     if value is None:
         return None
+    if isinstance(value, dict):
+        _known(value, ("x", "series"), "curves: ", "curves")
     if not isinstance(value, dict) or set(value) != {"x", "series"} or value["x"] not in CURVE_X:
         raise _Invalid(f"curves: expected {{x: one of {CURVE_X}, series: {{name: [column keys]}}}}")
     series = value["series"]
@@ -288,11 +342,20 @@ def _document(path: Path) -> dict:
         known = ", ".join(f"experiments/{p.name}" for p in shipped)
         raise _Invalid("no such manifest file" + (f"; the shipped manifests: {known}" if known else ""))
     try:
-        doc = yaml.safe_load(path.read_text())
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as e:
+        raise _Invalid(f"not UTF-8 text: byte {e.object[e.start]:#04x} at offset {e.start}") from None
+    try:
+        doc = yaml.safe_load(text)
     except yaml.YAMLError as e:
         raise _Invalid(f"not valid YAML: {e}") from None
     if not isinstance(doc, dict):
         raise _Invalid("a manifest is a mapping with name, columns and groups")
+    if "claims" in doc:
+        raise _Invalid(
+            "a claims file, not a study manifest (meshseg.report judges its claims on the manifests it names)"
+        )
+    _known(doc, MANIFEST_KEYS, "", "a manifest")
     missing = [k for k in ("name", "title", "columns", "groups") if k not in doc]
     if missing:
         raise _Invalid(f"missing key(s) {missing}")
@@ -304,13 +367,17 @@ def _document(path: Path) -> dict:
 def _manifest(doc: dict, path: Path) -> Manifest:
     columns = _columns(doc["columns"])
     n = len(columns)
-    groups = tuple(_group(g, n) for g in doc["groups"] or [])
+    groups = tuple(_group(g, i, n) for i, g in enumerate(doc["groups"] or []))
     if not groups:
         raise _Invalid("no groups")
+    total = doc.get("total") or {}
+    if not isinstance(total, dict):
+        raise _Invalid(f"total: expected {{label: ..., published: [numbers]}}, got {total!r}")
+    _known(total, ("label", "published"), "total: ", "total")
+    _labels(groups, total.get("label"))
     restrict = {str(c["key"]): c.get("sets") for c in doc["columns"]}
     columns = _restricted(columns, restrict, groups)
     keys = [c.key for c in columns]
-    total = doc.get("total") or {}
     return Manifest(
         str(doc["name"]),
         str(doc["title"]),

@@ -75,7 +75,7 @@ class _Planner:
     def column_run(self, group: Group, column: Column) -> ColumnRun:
         over = (*self.manifest.cell_overrides(group, column), *self.overrides)
         try:
-            cfg = run_config(over)
+            cfg = _run_config(over)
         except ConfigError as e:
             raise _compose_error(e, self.manifest, group, column, self.overrides) from None
         self._add_budget_text(cfg.budget)
@@ -259,13 +259,25 @@ def _pairs_asked(manifest: Manifest, paired) -> list[tuple[str, str]]:
     return [(a, b) for a, b in paired]
 
 
+def _run_config(overrides):
+    """A cell's run config, checked as `meshseg.run` checks it before a fold (meshseg.job.check_config): a column
+    no run can be made of (branches=7) is refused before the table, not offered or launched by reproduce. The
+    config's own checks only: the machine's (an accelerator, bf16 on this CPU) are for where the runs are made."""
+    from meshseg.job import check_config
+
+    cfg = run_config(overrides)
+    check_config(cfg)
+    return cfg
+
+
 def _compose_error(e: ConfigError, manifest: Manifest, group, column: Column, overrides) -> MeshsegError:
-    """What to say when a cell's run config cannot be composed: the command line's run overrides are at fault
-    when the manifest's own overrides compose without them (a ConfigError), else the manifest (a ManifestError)."""
+    """What to say when a cell's run config cannot be composed or checked: the command line's run overrides are at
+    fault when the manifest's own overrides make a valid config without them (a ConfigError), else the manifest
+    (a ManifestError)."""
     where = f"group {group.name}, column {column.key}"
     if overrides:
         try:
-            run_config(manifest.cell_overrides(group, column))
+            _run_config(manifest.cell_overrides(group, column))
         except ConfigError:
             pass
         else:
