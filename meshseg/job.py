@@ -170,6 +170,15 @@ def check_argv(argv: list[str]) -> None:
     check_settings(keys)
 
 
+#: more faces than any mesh has: a larger number means every face, which null says under one config hash
+MAX_FACES_PER_MESH = 10_000_000
+
+
+def _whole(v, low: int, high: float = float("inf")) -> bool:
+    """An integer (not a bool, not 64.5, not "abc") within [low, high]."""
+    return isinstance(v, int) and not isinstance(v, bool) and low <= v <= high
+
+
 def check_config(cfg: DictConfig) -> None:
     """Every run setting no config group checks for itself; each message lists what is allowed."""
     check_settings([k for k in cfg.keys() if k != "hydra"])  # a sweep job's config carries hydra's own node
@@ -183,8 +192,14 @@ def check_config(cfg: DictConfig) -> None:
     if cfg.ring_adjacency not in RING_ADJACENCY:
         raise ConfigError(f"ring_adjacency={cfg.ring_adjacency} is not allowed: choose one of {list(RING_ADJACENCY)}")
     b = cfg.budget
-    if not (int(b.epochs) >= 1 and int(b.batch_size) >= 1 and (b.faces_per_mesh is None or int(b.faces_per_mesh) >= 1)):
-        raise ConfigError(f"budget {b.name}: epochs and batch_size must be >= 1 and faces_per_mesh >= 1 or null")
+    for key in ("epochs", "batch_size"):
+        if not _whole(b[key], 1):
+            raise ConfigError(f"budget.{key}={b[key]} is not allowed (budget {b.name}): it must be an integer >= 1")
+    if not (b.faces_per_mesh is None or _whole(b.faces_per_mesh, 1, MAX_FACES_PER_MESH)):
+        raise ConfigError(
+            f"budget.faces_per_mesh={b.faces_per_mesh} is not allowed (budget {b.name}): it must be an integer "
+            f"from 1 to {MAX_FACES_PER_MESH:,}, or null for every face"
+        )
     if b.get("resample", "fold") not in RESAMPLE:
         raise ConfigError(f"budget.resample={b.resample} is not allowed: choose one of {list(RESAMPLE)}")
     if not (isinstance(cfg.seed, int) and isinstance(cfg.workers, int) and cfg.workers >= 1):

@@ -28,6 +28,7 @@ from pathlib import Path
 import mlflow.pyfunc
 import numpy as np
 
+from meshseg.errors import MeshDataError, MeshsegError
 from meshseg.predict import FoldModel
 from meshseg.tracking import FoldRecord
 
@@ -50,12 +51,19 @@ class FoldPyfunc(mlflow.pyfunc.PythonModel):
 
     def predict(self, context, model_input, params=None):
         import pandas as pd
+        from mlflow.exceptions import MlflowException
+        from mlflow.protos.databricks_pb2 import INVALID_PARAMETER_VALUE
 
         from meshseg.data.mesh import Mesh
 
-        mesh = Mesh(model_input["vertices"], model_input["faces"], source="the model input")
-        with feature_cache((params or {}).get("cache_dir")) as cache:
-            _, raw, labels = self.model.predict(mesh, cache)
+        try:
+            if not (hasattr(model_input, "keys") and {"vertices", "faces"} <= set(model_input.keys())):
+                raise MeshDataError("the model input", "must hold 'vertices' (n, 3) and 'faces' (m, 3)")
+            mesh = Mesh(model_input["vertices"], model_input["faces"], source="the model input")
+            with feature_cache((params or {}).get("cache_dir")) as cache:
+                _, raw, labels = self.model.predict(mesh, cache)
+        except MeshsegError as e:  # the caller's mesh, not the server: MLflow's scoring server answers 400 with it
+            raise MlflowException(str(e), error_code=INVALID_PARAMETER_VALUE) from None
         names = np.asarray(self.model.label_names, dtype=object)[labels]
         return pd.DataFrame({"label": labels.astype(np.int64), "label_raw": raw.astype(np.int64), "label_name": names})
 

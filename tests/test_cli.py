@@ -36,7 +36,7 @@ def test_config_groups_compose(dataset, cls, split, protocol, tmp_path):
 def test_build_dataset_surfaces_the_real_error(tmp_path):
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         cfg = compose("data", overrides=["dataset=psb", f"dataset.root={tmp_path}/none"])
-    with pytest.raises(ValueError, match="none: dataset root does not exist"):
+    with pytest.raises(ValueError, match="none: dataset.root does not exist"):
         build_dataset(cfg.dataset)
 
 
@@ -60,7 +60,7 @@ def test_summary_bad_root_is_one_clear_error(tmp_path):
     r = run("dataset=psb", f"dataset.root={tmp_path}/missing.tar.xz", cache=tmp_path)
     assert r.returncode == 1
     assert (
-        r.stderr.strip() == f"error: {tmp_path}/missing.tar.xz: dataset root does not exist "
+        r.stderr.strip() == f"error: {tmp_path}/missing.tar.xz: dataset.root does not exist "
         "(give a folder or an archive with dataset.root=PATH)"
     )
 

@@ -140,7 +140,7 @@ def test_corrupt_archive_is_one_error_and_leaves_nothing(tmp_path):
 
 
 def test_root_errors(tmp_path):
-    with pytest.raises(MeshDataError, match="dataset root does not exist"):
+    with pytest.raises(MeshDataError, match="dataset.root does not exist"):
         resolve_root(tmp_path / "nope", tmp_path)
     (tmp_path / "x.txt").write_text("hi")
     with pytest.raises(MeshDataError, match="neither a folder nor an archive"):

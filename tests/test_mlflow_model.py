@@ -110,3 +110,19 @@ def test_meshseg_predict_reads_a_model_artifact_of_a_run_from_before_logged_mode
     assert isinstance(model, FoldModel) and model.about == new.about
     labels = model.predict(mesh, cache_dir)[2]
     assert area_weighted_accuracy(labels, mesh.labels, mesh.face_areas) == pytest.approx(acc, abs=1e-12)
+
+
+def test_a_bad_mesh_is_the_callers_error_with_its_reason(fold, cache_dir):
+    """Issue 48, 10: MLflow's scoring server passed a bad mesh on as its generic message, the reason buried in
+    a stack trace; an MlflowException with an invalid-parameter code is answered 400 with the message itself."""
+    from mlflow.exceptions import MlflowException
+
+    tracker, run, mesh, _ = fold
+    mlflow.set_tracking_uri(tracker.uri)
+    model = mlflow.pyfunc.load_model(f"runs:/{run.info.run_id}/model")
+    bad = mesh.faces.copy()
+    bad[0, 2] = len(mesh.vertices) + 5
+    with pytest.raises(MlflowException) as e:
+        model.predict({"vertices": mesh.vertices, "faces": bad}, params={"cache_dir": str(cache_dir)})
+    assert e.value.error_code == "INVALID_PARAMETER_VALUE" and e.value.get_http_status_code() == 400
+    assert e.value.message.startswith("the model input: ") and "vert" in e.value.message

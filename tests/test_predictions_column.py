@@ -37,6 +37,13 @@ def test_a_label_the_category_lacks_is_named(tiny):
         score(Predictions(str(tiny / "pred"), "psb_labels"), PSB(str(tiny / "db")), "Tiny", ["2"], str(tiny))
 
 
+def test_a_missing_predictions_path_is_named_as_such(tiny):
+    """Issue 48, 10: it was reported as a missing "dataset root"."""
+    spec = Predictions(str(tiny / "nowhere.tar.xz"), "psb_labels")
+    with pytest.raises(ValueError, match=r"nowhere.tar.xz: predictions.path does not exist \(give a folder or an"):
+        score(spec, PSB(str(tiny / "db")), "Tiny", ["1"], str(tiny))
+
+
 def manifest(tiny, columns) -> object:
     return load_manifest(tiny_manifest(tiny, "tiny", columns, [{"name": "Tiny", "published": [None] * len(columns)}]))
 

@@ -316,6 +316,17 @@ def test_search_chooses_the_best_grid_point_and_the_first_of_equals(noisy_cup):
     assert list(tie.items()) == [("lam", 0.0), ("omega", 2.0)]  # walked lam first, as written the other way
 
 
+def test_a_search_logs_its_grid_size_and_each_point(noisy_cup, caplog):
+    mesh, P, agd = noisy_cup
+    refinement = build_refinement(conf("graphcut_agd", search={"lam": [0.0, 2.0], "omega": [2.0]}))
+    with caplog.at_level("INFO", logger="meshseg.refine.search"):
+        choose(refinement, [mesh], [P], [agd], lambda m, labels: 0.5)
+    lines = [r.getMessage() for r in caplog.records]
+    assert lines[0] == "refine.search: 2 grid points on 1 held-out meshes"
+    assert lines[1].startswith("refine.search 1/2 {'lam': 0.0, 'omega': 2.0}: 0.5000")
+    assert lines[2].startswith("refine.search 2/2 {'lam': 2.0, 'omega': 2.0}: 0.5000") and len(lines) == 3
+
+
 @pytest.mark.parametrize(
     "grid, message",
     [
@@ -331,6 +342,12 @@ def test_search_chooses_the_best_grid_point_and_the_first_of_equals(noisy_cup):
             r"refine.search \{'lam': -1.0\}: refine.lam=-1.0 is not allowed with refine=graphcut_agd",
         ),
         ({}, r"refine.search=\{\} is not allowed: give settings with lists of values"),
+        # issue 48, 8: 10^6 points were built (1.3 GB) and searched for days without a word
+        (
+            {"lam": [float(i) for i in range(1000)], "omega": [float(i) for i in range(1000)]},
+            r"refine.search has 1,000,000 points \(1000 lam x 1000 omega\): at most 100 are allowed",
+        ),
+        ({"lam": [float(i) for i in range(101)]}, r"refine.search has 101 points \(101 lam\): at most 100"),
     ],
 )
 def test_a_bad_search_grid_is_refused_when_the_refinement_is_built(grid, message):

@@ -137,7 +137,14 @@ def test_bad_values_fail_at_once_listing_what_is_allowed(store):
         ("branches=5", "error: branches=5 is not allowed: choose one of [1, 2, 3, 4]"),
         ("fold=9", "error: fold=9 is out of range: split 5fold of table has folds 0..4"),
         ("category=chair", "has no category 'chair'; it has ['table', 'cup', 'figure']"),
-        ("budget.epochs=0", "error: budget smoke: epochs and batch_size must be >= 1"),
+        ("budget.epochs=0", "error: budget.epochs=0 is not allowed (budget smoke): it must be an integer >= 1"),
+        ("budget.batch_size=abc", "error: budget.batch_size=abc is not allowed (budget smoke): it must be an integer"),
+        # issue 48, 5: "abc" was a traceback, 64.5 passed the check and failed the run after its features,
+        # 1e12 trained on every face under a config hash of its own
+        ("budget.faces_per_mesh=abc", "error: budget.faces_per_mesh=abc is not allowed (budget smoke): it must be"),
+        ("budget.faces_per_mesh=64.5", "error: budget.faces_per_mesh=64.5 is not allowed (budget smoke): it must"),
+        ("budget.faces_per_mesh=1e12", "from 1 to 10,000,000, or null for every face"),
+        ("budget.faces_per_mesh=0", "error: budget.faces_per_mesh=0 is not allowed"),
         ("tracking.uri=garbage://x", "error: tracking.uri=garbage://x: unknown store scheme 'garbage'"),
         ("refine.lam=-1", "refine.lam=-1"),
         (

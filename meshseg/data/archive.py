@@ -51,8 +51,9 @@ def remove_stale_partials(cache: Path, max_age_s: float = 6 * 3600) -> list[Path
     return removed
 
 
-def resolve_root(root: str | os.PathLike, cache_dir: str | os.PathLike) -> Path:
-    """A folder for `root`: itself if a folder, else the archive unpacked under `cache_dir`.
+def resolve_root(root: str | os.PathLike, cache_dir: str | os.PathLike, setting: str = "dataset.root") -> Path:
+    """A folder for `root`: itself if a folder, else the archive unpacked under `cache_dir`; an error names
+    the `setting` the path came from (a dataset's root, a report column's predictions.path).
 
     The archive is extracted into a temporary sibling and renamed into place only when complete,
     so a killed unpack leaves nothing that a later call would trust. The folder name carries the
@@ -62,9 +63,9 @@ def resolve_root(root: str | os.PathLike, cache_dir: str | os.PathLike) -> Path:
     if root.is_dir():
         return root
     if not root.exists():
-        raise MeshDataError(root, "dataset root does not exist (give a folder or an archive with dataset.root=PATH)")
+        raise MeshDataError(root, f"{setting} does not exist (give a folder or an archive with {setting}=PATH)")
     if not is_archive(root):
-        raise MeshDataError(root, f"dataset root is neither a folder nor an archive ({', '.join(ARCHIVE_SUFFIXES)})")
+        raise MeshDataError(root, f"{setting} is neither a folder nor an archive ({', '.join(ARCHIVE_SUFFIXES)})")
     cache = Path(cache_dir).expanduser()
     cache.mkdir(parents=True, exist_ok=True)
     stem = root.name[: -len(next(s for s in ARCHIVE_SUFFIXES if root.name.lower().endswith(s)))]

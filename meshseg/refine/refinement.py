@@ -13,6 +13,7 @@ own group parameters), and is called as `refinement(mesh, probabilities, feature
 from __future__ import annotations
 
 import itertools
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, fields, is_dataclass, replace
 
@@ -168,6 +169,10 @@ def numeric_settings(refinement: Refinement) -> list[str]:
     return sorted(k for k, v in defaults.items() if isinstance(v, int | float) and not isinstance(v, bool))
 
 
+#: the most points a refine.search grid may have: each costs a graph cut of every held-out mesh (seconds each)
+MAX_GRID_POINTS = 100
+
+
 def grid_points(refinement: Refinement, grid: dict) -> list[dict]:
     """Every combination of the grid's values, as settings of `refinement`, in grid order (settings sorted by
     name, values as listed); a grid that is not settings with non-empty lists of numbers, or a key that is
@@ -187,6 +192,13 @@ def grid_points(refinement: Refinement, grid: dict) -> list[dict]:
         if not numbers or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in values):
             raise ConfigError(f"refine.search.{key}={values} is not allowed: it must be a non-empty list of numbers")
     keys = sorted(grid)  # the config hash sorts the keys too: one hash, one order, one tie-break
+    size = math.prod(len(grid[k]) for k in keys)
+    if size > MAX_GRID_POINTS:  # counted before any point is built: 10^6 points were 1.3 GB and days of cuts
+        shape = " x ".join(f"{len(grid[k])} {k}" for k in keys)
+        raise ConfigError(
+            f"refine.search has {size:,} points ({shape}): at most {MAX_GRID_POINTS} are allowed, "
+            "each one a graph cut of every held-out mesh of every fold"
+        )
     return [dict(zip(keys, combo)) for combo in itertools.product(*(list(grid[k]) for k in keys))]
 
 

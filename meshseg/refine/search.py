@@ -11,12 +11,15 @@ does not import the metrics.
 from __future__ import annotations
 
 import dataclasses
+import logging
 from collections.abc import Callable, Sequence
 
 import numpy as np
 
 from meshseg.data.mesh import Mesh
 from meshseg.refine.refinement import Refinement, candidates
+
+log = logging.getLogger(__name__)
 
 
 @dataclasses.dataclass
@@ -39,11 +42,13 @@ def choose(
     if not meshes:
         raise ValueError("refine.search needs at least one held-out mesh to choose on")
     grid = candidates(refinement, refinement.search)
+    log.info("refine.search: %d grid points on %d held-out meshes", len(grid), len(meshes))
     table, best = [], 0
-    for point, candidate in grid:
+    for i, (point, candidate) in enumerate(grid, 1):
         scores = [score(m, candidate(m, p, f)) for m, p, f in zip(meshes, probabilities, features, strict=True)]
         table.append({**point, "score": float(np.mean(scores)), "per_mesh": [float(s) for s in scores]})
         if table[-1]["score"] > table[best]["score"]:
             best = len(table) - 1
+        log.info("refine.search %d/%d %s: %.4f (best %s)", i, len(grid), point, table[-1]["score"], grid[best][0])
     point, chosen = grid[best]
     return SearchResult(chosen, point, table[best]["score"], table)

@@ -15,7 +15,7 @@ from meshseg.report.manifest import Predictions
 
 
 def _folder(spec: Predictions, cache_dir: str) -> Path:
-    root = resolve_root(spec.path, cache_dir)
+    root = resolve_root(spec.path, cache_dir, setting="predictions.path")
     found = next(iter(sorted(root.rglob("*.lab"))), None)
     if found is None:
         raise MeshDataError(spec.path, "holds no <id>.lab labelling")
