@@ -199,7 +199,8 @@ def test_an_also_average_row_averages_only_its_sets_in_the_table_and_the_paired_
     doc = yaml.safe_load(path.read_text())
     doc["groups"][0]["also_average"] = [{"label": "Average (Two)", "sets": ["Two"]}]
     path.write_text(yaml.safe_dump(doc))
-    table, _, _ = report(path, [*run_args(tiny), "report.log=false", "report.n_boot=400", "report.results=null"])
+    args = [*run_args(tiny), "report.log=false", "report.n_boot=400", "report.results=null"]
+    table, _, _ = report(path, [*args, f"report.out_dir={tiny / 'out'}"])  # never the checkout's reports/
     assert [r.label for r in table.rows] == ["One", "Two", "Average", "Average (Two)"]
     one, two, everything, only_two = ([c.value for c in r.cells[:2]] for r in table.rows)
     assert one[0] == pytest.approx(250 / 3) and two == pytest.approx([100.0, two[1]]) and two[1] < 100
@@ -281,3 +282,30 @@ def test_the_learning_curve_places_each_cell_at_its_runs_samples_seen(tiny):
         f.name == "learning_curve.png" for f in write_report(plain, tiny / "p")
     )
     assert np.isclose(table.rows[1].cells[1].value, 95.0)
+
+
+# --- a figure the paper printed only as an image (no published number): its bar chart ----------------------
+
+
+def test_a_table_with_no_published_number_is_drawn_as_bars_with_intervals(tiny):
+    """The CF figure's shape (experiments/figure_cf_rf_loo.yaml): per set, then the average, one bar per column
+    at the cell's value with its interval as the error bar; the sets the paper printed no number for."""
+    from meshseg.report.write import comparison_figure
+
+    columns = [labellings(tiny, "A", "pred"), labellings(tiny, "B", "pred2")]
+    sets = [{"name": n, "category": "Tiny", "published": [None, None]} for n in ("One", "Two")]
+    table = collect(
+        load_manifest(tiny_manifest(tiny, "bars", columns, sets, None)), run_args(tiny), boot=Bootstrap(200)
+    )
+    (ax,) = comparison_figure(table).axes
+    assert [t.get_text() for t in ax.get_xticklabels()] == ["One", "Two", "Average"]
+    cells = {(r.label, c.column.key): c for r in table.rows for c in r.cells}
+    bars = [(p.get_x() + p.get_width() / 2, p.get_height()) for p in ax.patches]
+    # column A's three bars, then B's: heights the cells' values (A: 80 and 66.67 per mesh; B: 100 and 66.67)
+    assert [h for _, h in bars] == pytest.approx([cells[(r, k)].value for k in "AB" for r in ("One", "Two", "Average")])
+    assert cells[("One", "A")].value == pytest.approx((80 + 200 / 3) / 2)
+    assert bars[2][0] - bars[1][0] == pytest.approx(1.5)  # a gap before the average
+    (a_err, _) = [c for c in ax.containers if hasattr(c, "errorbar") and c.errorbar]
+    (segments,) = [lc.get_segments() for lc in a_err.errorbar.lines[2]]
+    got = [y for s in segments for y in s[:, 1]]
+    assert got == pytest.approx([y for r in ("One", "Two", "Average") for y in cells[(r, "A")].ci])

@@ -6,9 +6,13 @@ of the study (n/a: outside its column's `sets`) as a dash."""
 from __future__ import annotations
 
 import csv
+import fcntl
 import html
 import io
+import os
 import re
+import tempfile
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
@@ -333,9 +337,13 @@ def html_text(table: Table) -> str:
 
 def comparison_figure(table: Table):
     """Left: reproduced vs published for every complete cell with a published number, y = x dashed,
-    intervals as error bars. Right: per set, reproduced bars per column with published ticks."""
+    intervals as error bars. Right: per set, reproduced bars per column with published ticks. A table with
+    no published number at all (a figure the paper printed only as an image, e.g. the CF figure) is drawn
+    as that figure: `bar_figure`."""
     from matplotlib.figure import Figure
 
+    if all(c.published is None for r in table.rows for c in r.cells):
+        return bar_figure(table)
     cols = [c for c in table.columns if c.overrides is not None]
     sets = [r for r in table.rows if r.kind == "set"]
     ref = table.manifest.compared_with.lower()  # "published", or "reference" for a pinned run's numbers
@@ -399,6 +407,55 @@ def comparison_figure(table: Table):
     return fig
 
 
+def bar_figure(table: Table):
+    """Per set, then per average row, one bar per column with its interval as an error bar, the sets in
+    table order: the paper's bar charts (e.g. the CF figure). A cell without a value has no bar; the legend
+    says how many sets each column has."""
+    from matplotlib.figure import Figure
+
+    cols = [c for c in table.columns if c.overrides is not None or c.predictions is not None]  # not published-only
+    rows = [r for r in table.rows if r.kind in ("set", "average", "total")]
+    fig = Figure(figsize=(4 + 0.42 * len(rows) * max(1, len(cols)) ** 0.5, 4.6), layout="constrained")
+    ax = fig.subplots()
+    width, x = 0.8 / max(1, len(cols)), np.arange(len(rows), dtype=float)
+    x[[r.kind != "set" for r in rows]] += 0.5  # a gap before the averages
+    low = []
+    for i, c in enumerate(cols):
+        cells = [next(x_ for x_ in r.cells if x_.column.key == c.key) for r in rows]
+        vals = np.array([np.nan if x_.value is None else x_.value for x_ in cells])
+        err = np.array([[v - x_.ci[0], x_.ci[1] - v] if x_.ci else [0, 0] for x_, v in zip(cells, vals)]).T
+        done = sum(x_.value is not None for x_, r in zip(cells, rows) if r.kind == "set")
+        studied = sum(x_.status != "n/a" for x_, r in zip(cells, rows) if r.kind == "set")
+        label = c.label if done == studied else f"{c.label} ({done}/{studied} sets)"
+        ax.bar(
+            x - 0.4 + width * (i + 0.5),
+            vals,
+            width,
+            yerr=err,
+            color=f"C{i % 10}",
+            label=label,
+            error_kw={"elinewidth": 0.7, "capsize": 1.5},
+        )
+        low += [x_.ci[0] for x_ in cells if x_.ci]
+    if low:
+        ax.set_ylim(max(0, min(low) - 5), 100)
+    ax.set_xticks(x, [r.label for r in rows], rotation=60, ha="right", fontsize=7)
+    level = round(100 * table.level)
+    ax.set(ylabel=f"accuracy (%), bars with {level} % intervals over test meshes")
+    ax.yaxis.label.set_fontsize(8)
+    ax.grid(axis="y", lw=0.3)
+    ax.set_axisbelow(True)
+    if cols:
+        fig.legend(loc="outside lower center", ncols=min(6, len(cols)), fontsize=7)
+    p = progress(table)
+    fig.suptitle(
+        f"{table.manifest.title}\n{table.manifest.name} (budget {', '.join(table.budgets) or '—'}; "
+        f"{p.cells_done} of {p.cells} cells complete)",
+        fontsize=9,
+    )
+    return fig
+
+
 def png_bytes(fig, dpi: int = 110) -> bytes:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
@@ -431,17 +488,30 @@ def write_report(table: Table, out_dir: str | Path) -> list[Path]:
         contents["refinement.csv"] = refinement_csv(table)
     if table.boundaries is not None:
         contents["boundaries.csv"] = boundaries_csv(table)
-    for name in OPTIONAL_FILES.difference(contents):  # one an earlier report wrote would describe other runs
-        (out / name).unlink(missing_ok=True)
-    return write_files(out, contents)
+    # one an earlier report wrote would describe other runs
+    return write_files(out, contents, stale=OPTIONAL_FILES.difference(contents))
 
 
-def write_files(out: Path, contents: dict[str, str | bytes]) -> list[Path]:
-    """Each file of `contents` into the folder `out`, written whole or not at all."""
+def write_files(out: Path, contents: dict[str, str | bytes], stale: Iterable[str] = ()) -> list[Path]:
+    """Each file of `contents` into the folder `out`, written whole or not at all, and the files named in
+    `stale` removed. Two writers of one folder (two reports of one manifest, `reproduce` beside `report`)
+    take turns under a lock, so the folder ends wholly one writer's, and each file goes through a
+    temporary name of its own, never another writer's."""
     paths = []
-    for name, data in contents.items():
-        path, tmp = out / name, out / f".{name}.tmp"
-        tmp.write_bytes(data if isinstance(data, bytes) else data.encode())
-        tmp.replace(path)
-        paths.append(path)
+    with open(out / ".write.lock", "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes, also if this process dies
+        for name in stale:
+            (out / name).unlink(missing_ok=True)
+        for name, data in contents.items():
+            path = out / name
+            fd, tmp = tempfile.mkstemp(dir=out, prefix=f".{name}.", suffix=".tmp")
+            try:
+                with os.fdopen(fd, "wb") as f:
+                    f.write(data if isinstance(data, bytes) else data.encode())
+                os.chmod(tmp, 0o644)  # mkstemp's 0600 would hide a report from other users
+                os.replace(tmp, path)
+            except BaseException:
+                Path(tmp).unlink(missing_ok=True)
+                raise
+            paths.append(path)
     return paths
