@@ -104,7 +104,10 @@ def test_help_lists_every_user_option_and_no_internal_budget():
         (["meshseg.results", "exprot"], "error: unknown action 'exprot'"),
         (["meshseg.predict", "run_id=x", "mesh=x.off", "out=x.npy", "budget=cpu"], "error: meshseg.predict takes"),
         (["meshseg.features", "mesh=none.off"], "error: mesh=FILE needs out=FILE.npy"),
-        (["meshseg.data", "dataset=psb", "dataset.root=/nonexistent"], "error: /nonexistent: dataset root"),
+        (
+            ["meshseg.data", "dataset=psb", "dataset.root=/nonexistent"],
+            "error: /nonexistent: dataset.root does not exist",
+        ),
     ],
 )
 def test_every_command_ends_a_user_error_with_one_line_and_the_same_status(command, message, tmp_path):

@@ -1,6 +1,7 @@
 """A table read straight from results records (`collect_records`, `runs.records_mesh_table`): the same table as
 from a store holding those runs, without importing them."""
 
+import json
 import logging
 
 import pandas as pd
@@ -33,13 +34,17 @@ def test_a_table_from_records_is_the_table_from_their_store(smoke_store, tmp_pat
 
 
 def record(config_hash: str, fold: int, accs, *, seconds: float = 10.0, **changes) -> dict:
-    """A results record of one fold run of Tiny on meshes a, b, ... with these accuracies (fractions)."""
+    """A whole results record (one `import` takes) of one fold run of Tiny on test meshes a, b, ... with these
+    accuracies (fractions)."""
+    meshes = list("abcd"[: len(accs)])
     tags = {"dataset": "psb", "category": "Tiny", "fold": str(fold), "data_hash": "d", "overrides": "[]"}
-    tags |= {"fold_ids": "{}", "model": "rf", "config_hash": config_hash}
-    rows = [{"mesh": m, "faces": 2, "area": 1.0, "acc_raw": a - 0.1, "acc": a} for m, a in zip("abcd", accs)]
+    tags |= {"fold_ids": json.dumps({"train": ["e"], "test": meshes}), "model": "rf", "config_hash": config_hash}
+    tags |= {"branches": "1", "features": "f800", "split": "5fold", "refine": "none", "budget": "cpu"}
+    rows = [{"mesh": m, "faces": 2, "area": 1.0, "acc_raw": a - 0.1, "acc": a} for m, a in zip(meshes, accs)]
     counts = {"n_epochs": 1, "n_train_samples": 40, "n_test_faces": 2 * len(rows)}
     doc = {"format": 1, "config_hash": config_hash, "tags": tags, "config": {"category": "Tiny", "fold": fold}}
-    doc |= {"metrics": {"test/acc": 0.5}, "counts": counts, "per_mesh": rows}
+    means = {"test/acc": sum(accs) / len(accs), "test/acc_raw": sum(a - 0.1 for a in accs) / len(accs)}
+    doc |= {"metrics": means, "counts": counts, "per_mesh": rows}
     return doc | {"start_time": 1_000, "end_time": 1_000 + int(1000 * seconds)} | changes
 
 
