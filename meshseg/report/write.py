@@ -415,7 +415,7 @@ def bar_figure(table: Table):
 
     cols = [c for c in table.columns if c.overrides is not None or c.predictions is not None]  # not published-only
     rows = [r for r in table.rows if r.kind in ("set", "average", "total")]
-    fig = Figure(figsize=(4 + 0.42 * len(rows) * max(1, len(cols)) ** 0.5, 4.6), layout="constrained")
+    fig = Figure(figsize=(max(6.5, 3 + 0.26 * len(rows) * max(1, len(cols)) ** 0.5), 4.6), layout="constrained")
     ax = fig.subplots()
     width, x = 0.8 / max(1, len(cols)), np.arange(len(rows), dtype=float)
     x[[r.kind != "set" for r in rows]] += 0.5  # a gap before the averages
