@@ -2,6 +2,7 @@
 
     python -m meshseg.results export [tracking.uri=...] [out=results]
     python -m meshseg.results import [dir=results] [tracking.uri=...]
+    python -m meshseg.results verify [dir=results] [where=TAG=VALUE,...] [n=N] [seed=0] [tol=0.005] [out=reports/verify]
 
 MLflow is the system of record while running; `results/` is the one that ships (DESIGN "Tracking
 contract"). A record holds what the report and `reproduce` need: the run's tags (config hash, fold, data
@@ -474,13 +475,16 @@ def main(argv=None) -> None:
 
     argv = sys.argv[1:] if argv is None else list(argv)
     usage(__doc__.strip().split("\n\n")[1], argv)
-    if argv[0] not in ("export", "import"):
-        raise ConfigError(f"unknown action {argv[0]!r}: choose export or import")
+    if argv[0] not in ("export", "import", "verify"):
+        raise ConfigError(f"unknown action {argv[0]!r}: choose export, import or verify")
     action, args = argv[0], argv[1:]
-    own = {a.split("=", 1)[0]: a.split("=", 1)[1] for a in args if a.split("=", 1)[0] in ("out", "dir")}
-    overrides = [a for a in args if a.split("=", 1)[0] not in ("out", "dir")]
+    keys = ("out", "dir") + (VERIFY_KEYS if action == "verify" else ())
+    own = {a.split("=", 1)[0]: a.split("=", 1)[1] for a in args if a.split("=", 1)[0] in keys}
+    overrides = [a for a in args if a.split("=", 1)[0] not in keys]
     with hydra_scope():  # once for every record's config composed again (current_hash)
         cfg = run_config(overrides)
+        if action == "verify":
+            return verify_main(own)
         root = Path(own.get("out", own.get("dir", "results")))
         # the paths first: a mistyped one fails before any store is opened (or created empty)
         if action == "export":
@@ -502,6 +506,49 @@ def main(argv=None) -> None:
             print(f"import from {root} into {tracker.uri}: {rep.summary()}")
             if rep.refused:
                 sys.exit(ERROR_EXIT)
+
+
+VERIFY_KEYS = ("where", "n", "seed", "tol", "scratch")
+
+
+def _setting(own: dict, key: str, default: str, kind, low) -> float | int:
+    """verify's number `key` (an int or a float >= low) from the command line."""
+    text = own.get(key, default)
+    try:
+        value = kind(text)
+    except ValueError:
+        value = None
+    if value is None or value < low:
+        raise ConfigError(f"{key}={text} is not allowed: give {'an integer' if kind is int else 'a number'} >= {low}")
+    return value
+
+
+def verify_main(own: dict) -> None:
+    """`verify`: the chosen records made again and compared (meshseg.verify); its table under `out`."""
+    import sys
+
+    from meshseg import verify as V
+
+    root = Path(own.get("dir", "results"))
+    if not root.is_dir():
+        raise ConfigError(f"dir={root}: no such folder of results records")
+    where = V.parse_where(own.get("where"))
+    n = _setting(own, "n", "", int, 1) if "n" in own else None
+    seed = _setting(own, "seed", "0", int, 0)
+    tol = _setting(own, "tol", str(V.TOLERANCE), float, 0.0)
+    out = Path(own.get("out", "reports/verify"))
+    check_output_folder(out, "out")
+    records, unreadable = read_records(root)
+    for path, why in unreadable:
+        print(f"refused {path}: {why}", file=sys.stderr)
+    chosen = V.choose(records, where, n, seed)
+    with tempfile.TemporaryDirectory(prefix="meshseg-verify-") as tmp:
+        scratch = Path(own.get("scratch", tmp))
+        outcomes = V.verify(chosen, scratch, tol, hashes=current_hash)
+    V.write_table(out, V.table_files(outcomes, root, tol, where, n, seed))
+    print(f"verify: {V.summary(outcomes)}; table in {out}")
+    if any(o.status in ("differs", "failed") for o in outcomes):
+        sys.exit(ERROR_EXIT)
 
 
 if __name__ == "__main__":

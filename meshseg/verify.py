@@ -1,0 +1,216 @@
+"""`python -m meshseg.results verify`: shipped records made again and compared, mesh by mesh.
+
+    python -m meshseg.results verify [dir=results] [where=model=rf,category=Hand] [n=30] [seed=0]
+                                     [tol=0.005] [scratch=PATH] [out=reports/verify]
+
+A record says which code, data, fold and settings produced it; verify checks that. The records under `dir`
+whose tags match `where` (comma-separated tag=value pairs; none: all) are chosen, and with `n` a seeded sample
+of n of them, spread over methods and splits: each (model, split) group shuffled with `seed`, then taken in
+turn. Each chosen record's run is made again by `python -m meshseg.run` from the record's own Hydra overrides
+(its category and fold among them) into a scratch store (`scratch`, else a temporary one), and its per-mesh
+accuracies are compared with the record's:
+
+* identical: every test mesh's `acc` and `acc_raw` equal to the last bit;
+* within:    the largest |Δ| at most `tol` (a fraction: 0.005 is half a point); the table's "max Δ" columns
+             are the largest |Δ| of each accuracy over the record's test meshes;
+* differs:   more than that;
+* stale:     today's code gives the record's overrides and fold another config hash, so the same run
+             cannot be made again (the record is reported, not re-made).
+
+fp32 training is deterministic on one machine but not across instruction sets (AVX2 and AVX-512 round
+differently), so a difference beside two different CPU lines is a finding, not a failure: the table
+gives both machines. A run already in the scratch store at the record's config hash is compared, not made
+again. The table goes to `out` (verify.md, verify.csv); the command exits 1 when any record differs or
+cannot be made again (failed).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+import random
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from meshseg.errors import ConfigError
+from meshseg.tracking import FoldRecord, Tracker, machine
+
+#: the default largest per-mesh |Δ accuracy| (a fraction) still called "within"
+TOLERANCE = 0.005
+#: the per-mesh columns compared
+COLUMNS = ("acc", "acc_raw")
+
+
+@dataclass
+class Outcome:
+    path: Path
+    record: dict
+    status: str  # identical, within, differs, stale, failed
+    delta: dict[str, float]  # column -> largest |Δ| over the test meshes (empty when not re-made)
+    seconds: float
+    why: str = ""
+
+
+def parse_where(text: str | None) -> dict[str, str]:
+    """'model=rf,category=Hand' -> {'model': 'rf', 'category': 'Hand'}."""
+    out = {}
+    for part in filter(None, (text or "").split(",")):
+        key, sep, value = part.partition("=")
+        if not sep or not key or not value:
+            raise ConfigError(f"where={text}: {part!r} is not tag=value (e.g. where=model=rf,split=loo)")
+        out[key.strip()] = value.strip()
+    return out
+
+
+def choose(records: list[tuple[Path, dict]], where: dict[str, str], n: int | None, seed: int):
+    """The records matching `where`; with n, a seeded sample of n spread over (model, split) groups."""
+    chosen = [(p, r) for p, r in records if all(str(r["tags"].get(k)) == v for k, v in where.items())]
+    if n is None or n >= len(chosen):
+        return chosen
+    rng, groups = random.Random(seed), {}
+    for p, r in sorted(chosen, key=lambda pr: str(pr[0])):
+        groups.setdefault((r["tags"]["model"], r["tags"]["split"]), []).append((p, r))
+    queues = [groups[k] for k in sorted(groups)]
+    for q in queues:
+        rng.shuffle(q)
+    sample = []
+    while len(sample) < n:
+        for q in queues:
+            if q and len(sample) < n:
+                sample.append(q.pop())
+    return sample
+
+
+def compare(record_rows: list[dict], new_rows: list[dict], tol: float) -> tuple[str, dict[str, float]]:
+    """The status and the largest |Δ| per column of two per-mesh tables of the same test meshes."""
+    new = {row["mesh"]: row for row in new_rows}
+    if set(new) != {row["mesh"] for row in record_rows}:
+        return "differs", {}
+    delta = {c: max(abs(float(row[c]) - float(new[row["mesh"]][c])) for row in record_rows) for c in COLUMNS}
+    if all(d == 0 for d in delta.values()):
+        return "identical", delta
+    return ("within" if max(delta.values()) <= tol else "differs"), delta
+
+
+def remake(record: dict, uri: str, log_dir: Path) -> str | None:
+    """Run the record's fold again into the store at `uri`; None, or the failure's last lines."""
+    overrides = json.loads(record["tags"]["overrides"])
+    cmd = [sys.executable, "-m", "meshseg.run", *overrides, f"tracking.uri={uri}", "tracking.log_model=false"]
+    cmd += ["tracking.renders=0", f"paths.log_dir={log_dir}"]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    return None if proc.returncode == 0 else proc.stderr.strip()[-500:]
+
+
+def per_mesh(tracker: Tracker, run) -> list[dict]:
+    with tempfile.TemporaryDirectory(prefix="meshseg-verify-") as tmp:
+        return FoldRecord.read_per_mesh(tracker.client.download_artifacts(run.info.run_id, FoldRecord.PER_MESH, tmp))
+
+
+def verify(chosen, scratch: Path, tol: float = TOLERANCE, hashes=None, say=print) -> list[Outcome]:
+    """Each chosen (path, record) made again in the store under `scratch` and compared; `hashes(record)` gives
+    today's config hash of a record (meshseg.results.current_hash)."""
+    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # a bar per download otherwise
+    uri = f"sqlite:///{scratch.resolve()}/mlflow.db"
+    scratch.mkdir(parents=True, exist_ok=True)
+    tracker = Tracker(uri, "meshseg", str(scratch.resolve() / "artifacts"))
+    outcomes = []
+    for i, (path, record) in enumerate(chosen, 1):
+        start, h = time.perf_counter(), record["config_hash"]
+        today = hashes(record) if hashes else h
+        if today != h:
+            out = Outcome(path, record, "stale", {}, 0.0, f"today's config hash {today}")
+        else:
+            failure = None if tracker.finished(h) else remake(record, uri, scratch / "logs")
+            run = tracker.finished(h)
+            if run is None:
+                why = failure or "the run made again has another config hash"
+                out = Outcome(path, record, "failed", {}, time.perf_counter() - start, why)
+            else:
+                status, delta = compare(record["per_mesh"], per_mesh(tracker, run), tol)
+                out = Outcome(path, record, status, delta, time.perf_counter() - start)
+        say(f"verify {i}/{len(chosen)}: {record['name']}: {out.status}" + (f" ({out.why})" if out.why else ""))
+        outcomes.append(out)
+    return outcomes
+
+
+HEADER = (
+    "record",
+    "run",
+    "model",
+    "split",
+    "set",
+    "fold",
+    "status",
+    "max Δ acc",
+    "max Δ acc_raw",
+    "seconds",
+    "record's machine",
+    "note",
+)
+
+
+def rows(outcomes: list[Outcome], root: Path) -> list[tuple]:
+    out = []
+    for o in outcomes:
+        t = o.record["tags"]
+        deltas = [f"{o.delta[c]:.2e}" if c in o.delta else "" for c in COLUMNS]
+        rel = o.path.relative_to(root) if o.path.is_relative_to(root) else o.path
+        out.append(
+            (
+                str(rel),
+                o.record["name"],
+                t["model"],
+                t["split"],
+                t["category"],
+                t["fold"],
+                o.status,
+                *deltas,
+                f"{o.seconds:.0f}",
+                t.get("machine", ""),
+                o.why.replace("\n", " ").replace("|", "/"),
+            )
+        )
+    return out
+
+
+def summary(outcomes: list[Outcome]) -> str:
+    counts = {s: sum(o.status == s for o in outcomes) for s in ("identical", "within", "differs", "stale", "failed")}
+    deltas = [max(o.delta.values()) for o in outcomes if o.delta]
+    text = ", ".join(f"{v} {k}" for k, v in counts.items() if v) or "nothing chosen"
+    return text + (f"; largest per-mesh |Δ| {max(deltas):.2e}" if deltas else "")
+
+
+def table_files(outcomes: list[Outcome], root: Path, tol: float, where: dict, n, seed: int) -> dict[str, str]:
+    """verify.md and verify.csv."""
+    body = rows(outcomes, root)
+    buf = io.StringIO()
+    csv.writer(buf).writerows([HEADER, *body])
+    choice = ", ".join(f"{k}={v}" for k, v in where.items()) or "every record"
+    md = [
+        "# Shipped records made again",
+        "",
+        f"Records: {choice} under `{root}`" + (f", a sample of {n} (seed {seed})" if n else "") + ".",
+        f"This machine: {machine('cpu')}. Tolerance: per-mesh |Δ| <= {tol:g} is 'within'.",
+        f"Outcome: {summary(outcomes)}.",
+        "",
+        "| " + " | ".join(HEADER) + " |",
+        "|" + "---|" * len(HEADER),
+        *("| " + " | ".join(str(c) for c in r) + " |" for r in body),
+        "",
+    ]
+    return {"verify.md": "\n".join(md), "verify.csv": buf.getvalue()}
+
+
+def write_table(out: Path, files: dict[str, str]) -> None:
+    """Each file written whole (a temporary name, then renamed)."""
+    out.mkdir(parents=True, exist_ok=True)
+    for name, text in files.items():
+        tmp = out / f".{name}.{os.getpid()}.tmp"
+        tmp.write_text(text)
+        tmp.replace(out / name)

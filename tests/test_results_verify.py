@@ -1,0 +1,88 @@
+"""`python -m meshseg.results verify`: a shipped record made again in a scratch store and compared mesh by mesh."""
+
+import json
+from pathlib import Path
+
+import pytest
+from conftest import smoke_env
+
+from meshseg.errors import ConfigError
+from meshseg.results import export, load_records, main, write_record
+from meshseg.tracking import Tracker
+from meshseg.verify import choose, compare, parse_where, verify
+
+
+@pytest.fixture(scope="module")
+def rf_record(smoke_store, tmp_path_factory):
+    """One random-forest record of the smoke store, exported alone into its own folder."""
+    out = tmp_path_factory.mktemp("records")
+    export(Tracker(f"sqlite:///{smoke_store}/mlflow.db", "meshseg", str(smoke_store / "artifacts")), out)
+    path, record = next((p, r) for p, r in load_records(out) if r["tags"]["model"] == "rf")
+    alone = tmp_path_factory.mktemp("one") / path.relative_to(out)
+    write_record(alone, record)
+    return alone.parents[2], record
+
+
+def edited(record: dict, by: float) -> dict:
+    """The record with its first mesh's accuracy moved by `by`, and test/acc its rows' mean again (a whole record)."""
+    r = json.loads(json.dumps(record))
+    r["per_mesh"][0]["acc"] += by
+    r["metrics"]["test/acc"] = sum(row["acc"] for row in r["per_mesh"]) / len(r["per_mesh"])
+    return r
+
+
+def test_a_record_made_again_is_identical_and_a_hand_edited_one_differs(rf_record, tmp_path, cache_dir, monkeypatch):
+    root, record = rf_record
+    for k, v in smoke_env(tmp_path, cache_dir).items():
+        monkeypatch.setenv(k, v)
+    scratch, out = tmp_path / "scratch", tmp_path / "verify"
+    main(["verify", f"dir={root}", f"scratch={scratch}", f"out={out}"])  # returns: nothing differs
+    md = (out / "verify.md").read_text()
+    assert "Outcome: 1 identical; largest per-mesh |Δ| 0.00e+00." in md and record["name"] in md
+    assert Tracker(f"sqlite:///{scratch}/mlflow.db", "meshseg").finished(record["config_hash"])  # made again there
+
+    copy = tmp_path / "edited"
+    write_record(
+        copy / "synthetic" / record["tags"]["category"] / f"{record['config_hash']}.json", edited(record, -0.2)
+    )
+    with pytest.raises(SystemExit) as done:  # the scratch store has the run: compared, not made again
+        main(["verify", f"dir={copy}", f"scratch={scratch}", f"out={out}"])
+    assert done.value.code == 1
+    row = next(r for r in (out / "verify.csv").read_text().splitlines()[1:])
+    assert ",differs," in row and ",2.00e-01," in row  # the edit, to the last digit shown
+
+
+def test_compare_statuses():
+    rows = [{"mesh": "1", "acc": 0.9, "acc_raw": 0.8}, {"mesh": "2", "acc": 0.7, "acc_raw": 0.6}]
+    assert compare(rows, rows, 0.005) == ("identical", {"acc": 0.0, "acc_raw": 0.0})
+    near = [dict(rows[0], acc=0.903), rows[1]]
+    status, delta = compare(rows, near, 0.005)
+    assert status == "within" and delta["acc"] == pytest.approx(0.003) and delta["acc_raw"] == 0
+    assert compare(rows, near, 0.002)[0] == "differs"
+    assert compare(rows, rows[:1], 0.005) == ("differs", {})  # not the same test meshes
+
+
+def test_a_stale_record_is_reported_not_made_again(rf_record, tmp_path):
+    root, record = rf_record
+    [out] = verify(
+        [(root / "x.json", record)], tmp_path / "scratch", hashes=lambda r: "0123456789abcdef", say=lambda s: None
+    )
+    assert (out.status, out.why, out.delta) == ("stale", "today's config hash 0123456789abcdef", {})
+    assert not (tmp_path / "scratch" / "logs").exists()  # no run was launched
+
+
+def fake(model, split, i):
+    return Path(f"{model}-{split}-{i}.json"), {"tags": {"model": model, "split": split, "category": "Cup"}}
+
+
+def test_a_sample_is_seeded_and_spread_over_methods_and_splits():
+    records = [fake(m, s, i) for m in ("cnn1d", "rf") for s in ("loo", "5fold") for i in range(5)] + [
+        fake("gbdt", "loo", 0)
+    ]
+    sample = choose(records, {}, 5, seed=3)
+    assert len(sample) == 5 and len({(r["tags"]["model"], r["tags"]["split"]) for _, r in sample}) == 5
+    assert sample == choose(records, {}, 5, seed=3) and sample != choose(records, {}, 5, seed=4)
+    assert [p.name for p, _ in choose(records, {"model": "gbdt"}, None, 0)] == ["gbdt-loo-0.json"]
+    assert parse_where("model=rf,split=loo") == {"model": "rf", "split": "loo"}
+    with pytest.raises(ConfigError, match=r"where=model: 'model' is not tag=value"):
+        parse_where("model")
