@@ -7,8 +7,9 @@
 MLflow is the system of record while running; `results/` is the one that ships (DESIGN "Tracking
 contract"). A record holds what the report and `reproduce` need: the run's tags (config hash, fold, data
 hash, ...), its resolved config, its metrics, the per-mesh table and provenance (git sha, package
-versions, machine, times, the Hydra overrides it was launched with and the fold's mesh ids). Per-face
-predictions stay in the store's artifacts.
+versions, machine, times, the Hydra overrides it was launched with and the fold's mesh ids), and, where the
+run logged them, its test meshes' refined per-face labels (`labels`, LABELS_ENCODING); probabilities stay in
+the store.
 
 Import recreates each record as a FINISHED run with the same tags, params, metrics, `config.yaml` and
 `per_mesh.csv`, so the report, `reproduce` (which then skips it), the UI and the notebooks see it. It is
@@ -71,6 +72,7 @@ def record_of(tracker: Tracker, run) -> dict:
     with tempfile.TemporaryDirectory(prefix="meshseg-export-") as tmp:
         config = yaml.safe_load(Path(tracker.client.download_artifacts(run_id, FoldRecord.CONFIG, tmp)).read_text())
         rows = FoldRecord.read_per_mesh(tracker.client.download_artifacts(run_id, FoldRecord.PER_MESH, tmp))
+        labels = _run_labels(tracker, run_id, [row["mesh"] for row in rows], tmp)
     return {
         "format": FORMAT,
         "config_hash": run.data.tags["config_hash"],
@@ -80,9 +82,59 @@ def record_of(tracker: Tracker, run) -> dict:
         "metrics": dict(sorted(metrics.items())),
         "counts": dict(sorted(counts.items())),
         "per_mesh": rows,
+        **({"labels": labels} if labels else {}),
         "start_time": run.info.start_time,
         "end_time": run.info.end_time,
     }
+
+
+#: how a record's per-face labels are written: uint8 values, zlib level 9, then base85 text. On the L-PSB (20,444
+#: faces a mesh on average) the ground truth's labels take 1,917 bytes a mesh (median 810; Armadillo's and Bust's
+#: face orders make them the largest, up to 17 kB), the first runs' labels 2,021 (RF) and 2,248 (1D CNN)
+LABELS_ENCODING = "u8-zlib-b85"
+
+
+def encode_labels(labels) -> str:
+    import base64
+    import zlib
+
+    import numpy as np
+
+    return base64.b85encode(zlib.compress(np.asarray(labels).astype(np.uint8).tobytes(), 9)).decode("ascii")
+
+
+def decode_labels(text: str):
+    """The uint8 array an encode_labels text holds (ValueError or zlib.error when it holds none)."""
+    import base64
+    import zlib
+
+    import numpy as np
+
+    return np.frombuffer(zlib.decompress(base64.b85decode(text.encode("ascii"))), dtype=np.uint8)
+
+
+def _run_labels(tracker: Tracker, run_id: str, meshes: list[str], tmp: str) -> dict | None:
+    """The record's `labels` from the run's per-face predictions, or None (a run without them: an imported one
+    made before records carried labels)."""
+    import numpy as np
+
+    if FoldRecord.PREDICTIONS not in {a.path for a in tracker.client.list_artifacts(run_id)}:
+        return None
+    with np.load(tracker.client.download_artifacts(run_id, FoldRecord.PREDICTIONS, tmp)) as z:
+        if not all(f"labels_{m}" in z.files for m in meshes):
+            return None
+        probs = [f"probs_{m}" for m in meshes if f"probs_{m}" in z.files]
+        if "classes" in z.files:  # a run imported from a record
+            classes = int(z["classes"])
+        elif probs:
+            classes = int(z[probs[0]].shape[1])
+        else:
+            classes = int(max(z[f"labels_{m}"].max() for m in meshes)) + 1
+        return {
+            "encoding": LABELS_ENCODING,
+            "classes": classes,
+            "meshes": {m: encode_labels(z[f"labels_{m}"]) for m in meshes},
+        }
 
 
 #: what a dataset, category or config hash may be called where it names a folder or file under results/
@@ -123,6 +175,7 @@ def _number(v) -> bool:
 def check_record(record: dict) -> str | None:
     """Why a record cannot be imported as it is, or None: every part checked before any run is created."""
     problems = (_identity_problem, _config_problem, _numbers_problem, _per_mesh_problem, _means_problem, _times_problem)
+    problems += (_labels_problem,)
     for problem in problems:
         why = problem(record)
         if why is not None:
@@ -233,6 +286,38 @@ def _per_mesh_problem(record: dict) -> str | None:
             *([f"more than once: {twice[:5]}"] if twice else []),
         ]
         return f"per_mesh rows are not the fold's test meshes (tags.fold_ids): {'; '.join(parts)}"
+    return None
+
+
+def _labels_problem(record: dict) -> str | None:
+    """Per-face labels, where a record has them: one array per test mesh, its length the mesh's faces, its values
+    class indices."""
+    import zlib
+
+    labels = record.get("labels")
+    if labels is None:
+        return None
+    if not isinstance(labels, dict) or set(labels) != {"encoding", "classes", "meshes"}:
+        return "labels must hold encoding, classes and meshes"
+    if labels["encoding"] != LABELS_ENCODING:
+        return f"labels: encoding {labels['encoding']!r} is not {LABELS_ENCODING!r}"
+    classes = labels["classes"]
+    if not isinstance(classes, int) or isinstance(classes, bool) or not 1 <= classes <= 256:
+        return f"labels: classes {classes!r} is not a whole number from 1 to 256"
+    faces = {row["mesh"]: row["faces"] for row in record["per_mesh"]}
+    if not isinstance(labels["meshes"], dict) or set(labels["meshes"]) != set(faces):
+        return f"labels: meshes {sorted(labels['meshes'])[:5]} are not the per_mesh rows' {sorted(faces)[:5]}"
+    for mesh, text in labels["meshes"].items():
+        try:
+            values = decode_labels(text) if isinstance(text, str) else None
+        except (ValueError, zlib.error) as e:
+            return f"labels[{mesh}]: not {LABELS_ENCODING} text ({e})"
+        if values is None:
+            return f"labels[{mesh}]: not {LABELS_ENCODING} text"
+        if len(values) != faces[mesh]:
+            return f"labels[{mesh}]: {len(values)} labels for a mesh of {faces[mesh]} faces"
+        if len(values) and int(values.max()) >= classes:
+            return f"labels[{mesh}]: label {int(values.max())} is not a class index below classes={classes}"
     return None
 
 
@@ -454,7 +539,9 @@ def _import_records(tracker: Tracker, root: Path) -> ImportReport:
 
 
 def _fill(tracker: Tracker, run_id: str, record: dict) -> None:
-    """A claimed run made into the record's FINISHED run: params, metrics, config and per-mesh table."""
+    """A claimed run made into the record's FINISHED run: params, metrics, config, per-mesh table and, where the
+    record has them, the per-face labels (the predictions artifact with labels alone)."""
+    import numpy as np
     from mlflow.entities import Metric, Param
 
     metrics, counts = record["metrics"], record.get("counts", {})
@@ -464,7 +551,12 @@ def _fill(tracker: Tracker, run_id: str, record: dict) -> None:
     metrics = [Metric(k, float(v), t, 0) for k, v in metrics.items()]
     for i in range(0, max(len(params), len(metrics)), 100):
         tracker.client.log_batch(run_id, metrics=metrics[i : i + 100], params=params[i : i + 100])
-    tracker.log_fold(run_id, OmegaConf.to_yaml(OmegaConf.create(record["config"])), record["per_mesh"], None)
+    labels = record.get("labels")
+    arrays = None
+    if labels:
+        arrays = {f"labels_{m}": decode_labels(t) for m, t in labels["meshes"].items()}
+        arrays["classes"] = np.array(labels["classes"])
+    tracker.log_fold(run_id, OmegaConf.to_yaml(OmegaConf.create(record["config"])), record["per_mesh"], arrays)
     tracker.client.set_terminated(run_id, "FINISHED", end_time=record["end_time"])
 
 

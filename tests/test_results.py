@@ -6,12 +6,13 @@ import shutil
 import tempfile
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from conftest import REPO, SMOKE, smoke_env
 
 from meshseg.report import report
-from meshseg.results import export, import_records, load_records
+from meshseg.results import decode_labels, export, import_records, load_records
 from meshseg.tracking import Tracker
 
 SYNTH = REPO / "experiments/synthetic.yaml"
@@ -52,7 +53,17 @@ def test_export_writes_one_small_record_per_finished_run(exported, smoke_store):
     assert "cores" in r["tags"]["machine"] and "torch" in r["tags"]["versions"]
     assert torch.backends.cpu.get_cpu_capability() in r["tags"]["machine"]
     assert "split.k=2" in json.loads(r["tags"]["overrides"])
-    assert max(p.stat().st_size for p, _ in records) < 20_000  # no per-face arrays
+    assert max(p.stat().st_size for p, _ in records) < 20_000  # labels, no probabilities
+    store = tracker(smoke_store)
+    for _, rec in records[:3]:  # each test mesh's refined labels, bit for bit those of the store's run
+        run = store.finished(rec["config_hash"])
+        arrays = np.load(store.client.download_artifacts(run.info.run_id, "predictions.npz", str(scratch)))
+        assert set(rec["labels"]["meshes"]) == {row["mesh"] for row in rec["per_mesh"]}
+        assert rec["labels"]["classes"] == arrays[f"probs_{rec['per_mesh'][0]['mesh']}"].shape[1]
+        for mesh, text in rec["labels"]["meshes"].items():
+            assert np.array_equal(decode_labels(text), arrays[f"labels_{mesh}"])
+    shutil.rmtree(scratch)
+    scratch.mkdir()
     assert export(tracker(smoke_store), out) == (0, 18)  # exporting again changes no file
 
 

@@ -8,11 +8,21 @@ import os
 import signal
 from pathlib import Path
 
+import numpy as np
 import pytest
 from conftest import REPO
 from test_results import tracker
 
-from meshseg.results import MAX_RECORD_BYTES, import_records, main, record_path
+from meshseg.results import (
+    LABELS_ENCODING,
+    MAX_RECORD_BYTES,
+    decode_labels,
+    encode_labels,
+    export,
+    import_records,
+    main,
+    record_path,
+)
 from meshseg.tracking import Tracker
 
 
@@ -131,6 +141,45 @@ def tag(key, value, why):
     return edit
 
 
+def labelled(r, classes: int = 5) -> dict:
+    """The record with per-face labels for its test meshes (a shipped record carries none): mesh i's labels
+    count 0, 1, ... up to classes - 1 and round again."""
+    r["labels"] = {
+        "encoding": LABELS_ENCODING,
+        "classes": classes,
+        "meshes": {row["mesh"]: encode_labels(np.arange(row["faces"]) % classes) for row in r["per_mesh"]},
+    }
+    return r
+
+
+def short_labels(r):
+    mesh, faces = r["per_mesh"][0]["mesh"], r["per_mesh"][0]["faces"]
+    labelled(r)["labels"]["meshes"][mesh] = encode_labels(np.zeros(faces - 1))
+    return f"labels[{mesh}]: {faces - 1} labels for a mesh of {faces} faces"
+
+
+def label_out_of_range(r):
+    mesh = r["per_mesh"][1]["mesh"]
+    labelled(r, classes=5)["labels"]["meshes"][mesh] = encode_labels(np.full(r["per_mesh"][1]["faces"], 5))
+    return f"labels[{mesh}]: label 5 is not a class index below classes=5"
+
+
+def labels_not_encoded(r):
+    mesh = r["per_mesh"][0]["mesh"]
+    labelled(r)["labels"]["meshes"][mesh] = "~~~ not base85 ~~~"
+    try:
+        decode_labels("~~~ not base85 ~~~")
+    except ValueError as e:
+        return f"labels[{mesh}]: not {LABELS_ENCODING} text ({e})"
+
+
+def labels_of_another_mesh(r):
+    labels = labelled(r)["labels"]["meshes"]
+    labels["9999"] = labels.pop(r["per_mesh"][0]["mesh"])
+    shown, rows = sorted(labels)[:5], sorted(row["mesh"] for row in r["per_mesh"])[:5]
+    return f"labels: meshes {shown} are not the per_mesh rows' {rows}"
+
+
 IMPOSSIBLE = {
     "acc 1.5": row_value("acc", 1.5),
     "acc -0.25": row_value("acc", -0.25),
@@ -153,6 +202,15 @@ IMPOSSIBLE = {
     "overrides not a list": tag("overrides", '"split=5fold"', "tags.overrides is not a JSON list of overrides"),
     "branches not a number": tag("branches", "three", "tags.branches 'three' is not a whole number"),
     "split tag missing": lambda r: (r["tags"].pop("split"), "tags lack ['split']")[1],
+    # per-face labels (issue 50)
+    "labels one short": short_labels,
+    "a label out of range": label_out_of_range,
+    "labels not encoded": labels_not_encoded,
+    "labels of another mesh": labels_of_another_mesh,
+    "labels' encoding unknown": lambda r: (
+        labelled(r)["labels"].update(encoding="u8-raw"),
+        f"labels: encoding 'u8-raw' is not {LABELS_ENCODING!r}",
+    )[1],
 }
 
 
@@ -163,6 +221,21 @@ def test_the_shipped_record_itself_imports(record, tmp_path):
     rep = import_records(store, tmp_path / "results")
     assert (rep.imported, rep.refused) == ([path], [])
     assert [r.info.status for r in every_run(store)] == ["FINISHED"]
+
+
+def test_labels_round_trip_through_import_and_export_bit_for_bit(record, tmp_path):
+    """A record's per-face labels become the imported run's predictions artifact and come back out of export
+    unchanged; a record without labels still imports (the test above) and exports without them."""
+    labelled(record, classes=7)
+    store = tracker(tmp_path / "store")
+    put(tmp_path / "in", record)
+    assert import_records(store, tmp_path / "in").refused == []
+    assert export(store, tmp_path / "out") == (1, 0)
+    [path] = (tmp_path / "out").rglob("*.json")
+    back = json.loads(path.read_text())
+    assert back["labels"] == record["labels"]
+    for row in record["per_mesh"]:
+        assert np.array_equal(decode_labels(back["labels"]["meshes"][row["mesh"]]), np.arange(row["faces"]) % 7)
 
 
 @pytest.mark.parametrize("case", IMPOSSIBLE)

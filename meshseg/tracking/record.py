@@ -87,9 +87,10 @@ class FoldRecord:
     MESH_METRICS = ("acc", "acc_raw")
     #: artifact (runs with refine.search): the held-out meshes and every grid point's scores (JSON)
     REFINE_SEARCH = "refine_search.json"
-    #: artifact: per-face arrays, keys `<prefix><mesh id>` with these dtypes
+    #: artifact: per-face arrays, keys `<prefix><mesh id>` with these dtypes (and `classes`, the class count, where
+    #: no `probs_` array gives it: a run imported from a record's labels)
     PREDICTIONS = "predictions.npz"
-    PREDICTION_ARRAYS = {"labels_": "int16", "labels_raw_": "int16", "probs_": "float16"}
+    PREDICTION_ARRAYS = {"labels_": "int16", "labels_raw_": "int16", "probs_": "float16", "classes": "int16"}
     #: the fold's model: the run's MLflow logged model of this name (`runs:/<run id>/model`, meshseg.pyfunc); runs
     #: made before logged models kept the same files as their `model/` artifact
     MODEL = "model"

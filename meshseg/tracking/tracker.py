@@ -214,7 +214,7 @@ class Tracker:
     ) -> None:
         """The fold's record as `FoldRecord` names it: the config, the per-mesh table (its columns in
         FoldRecord's order) and the per-face predictions, each array cast to its FoldRecord dtype (None: a
-        run imported from `results/`, which carries no per-face arrays)."""
+        run imported from a `results/` record without labels; a record's labels come as the `labels_` arrays alone)."""
         R = FoldRecord
         with tempfile.TemporaryDirectory() as tmp:
             d = Path(tmp)
