@@ -4,8 +4,10 @@ label). Errors in the first rings are a boundary placed a little off, what a bou
 can move; errors deep inside parts are whole regions given the wrong label, which it cannot.
 
 Opt-in (`report.boundaries=true`): it loads every test mesh and reads every run's per-face predictions from
-the store (FoldRecord.PREDICTIONS). Shipped results records carry none, so a run imported from `results/`
-has no row here; a predictions column (Kalogerakis 2010's labellings) is read from disk as the table scores it.
+the store (FoldRecord.PREDICTIONS). A run imported from a `results/` record has the record's refined labels
+(records exported since 2026-12-02) or none (older ones: no row here, and under report.metric=acc_raw never,
+records keeping no argmax); a predictions column (Kalogerakis 2010's labellings) is read from disk as the table
+scores it.
 """
 
 from __future__ import annotations
