@@ -103,14 +103,17 @@ def encode_labels(labels) -> str:
     return base64.b85encode(zlib.compress(np.asarray(labels).astype(np.uint8).tobytes(), 9)).decode("ascii")
 
 
-def decode_labels(text: str):
-    """The uint8 array an encode_labels text holds (ValueError or zlib.error when it holds none)."""
+def decode_labels(text: str, limit: int | None = None):
+    """The uint8 array an encode_labels text holds (ValueError or zlib.error when it holds none); with `limit`,
+    at most limit + 1 labels are unpacked (a few bytes of text can inflate to gigabytes)."""
     import base64
     import zlib
 
     import numpy as np
 
-    return np.frombuffer(zlib.decompress(base64.b85decode(text.encode("ascii"))), dtype=np.uint8)
+    raw = base64.b85decode(text.encode("ascii"))
+    data = zlib.decompress(raw) if limit is None else zlib.decompressobj().decompress(raw, limit + 1)
+    return np.frombuffer(data, dtype=np.uint8)
 
 
 def _run_labels(tracker: Tracker, run_id: str, meshes: list[str], tmp: str) -> dict | None:
@@ -130,6 +133,8 @@ def _run_labels(tracker: Tracker, run_id: str, meshes: list[str], tmp: str) -> d
             classes = int(z[probs[0]].shape[1])
         else:
             classes = int(max(z[f"labels_{m}"].max() for m in meshes)) + 1
+        if not 1 <= classes <= 256 or any(z[f"labels_{m}"].min(initial=0) < 0 for m in meshes):
+            return None  # not uint8 class indices: the record goes without labels rather than with wrong ones
         return {
             "encoding": LABELS_ENCODING,
             "classes": classes,
@@ -144,7 +149,8 @@ REQUIRED_TAGS = (
     *("config_hash", "dataset", "category", "fold", "data_hash", "overrides", "fold_ids", "model"),
     *("branches", "features", "split", "refine", "budget"),
 )
-#: a record is a few kB (results/ holds none over 6 kB): a file over this is refused unread
+#: a record is a few kB, up to ~60 kB with the labels of four large meshes (results/ holds none over 61 kB on
+#: 2026-12-02): a file over this is refused unread
 MAX_RECORD_BYTES = 1_000_000
 #: how far `test/acc` (`test/acc_raw`) may lie from the mean of the per-mesh rows' accuracies: float rounding
 #: (run.py logs np.mean of the very rows the record holds; results/ differs by 1.1e-16 at most)
@@ -309,13 +315,14 @@ def _labels_problem(record: dict) -> str | None:
         return f"labels: meshes {sorted(labels['meshes'])[:5]} are not the per_mesh rows' {sorted(faces)[:5]}"
     for mesh, text in labels["meshes"].items():
         try:
-            values = decode_labels(text) if isinstance(text, str) else None
+            values = decode_labels(text, faces[mesh]) if isinstance(text, str) else None
         except (ValueError, zlib.error) as e:
             return f"labels[{mesh}]: not {LABELS_ENCODING} text ({e})"
         if values is None:
             return f"labels[{mesh}]: not {LABELS_ENCODING} text"
         if len(values) != faces[mesh]:
-            return f"labels[{mesh}]: {len(values)} labels for a mesh of {faces[mesh]} faces"
+            count = len(values) if len(values) < faces[mesh] else f"more than {faces[mesh]}"
+            return f"labels[{mesh}]: {count} labels for a mesh of {faces[mesh]} faces"
         if len(values) and int(values.max()) >= classes:
             return f"labels[{mesh}]: label {int(values.max())} is not a class index below classes={classes}"
     return None

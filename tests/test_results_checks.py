@@ -158,6 +158,12 @@ def short_labels(r):
     return f"labels[{mesh}]: {faces - 1} labels for a mesh of {faces} faces"
 
 
+def labels_inflating(r):  # a few kB of text that would inflate to 10 MB: unpacked only past the mesh's faces
+    mesh, faces = r["per_mesh"][0]["mesh"], r["per_mesh"][0]["faces"]
+    labelled(r)["labels"]["meshes"][mesh] = encode_labels(np.zeros(10_000_000))
+    return f"labels[{mesh}]: more than {faces} labels for a mesh of {faces} faces"
+
+
 def label_out_of_range(r):
     mesh = r["per_mesh"][1]["mesh"]
     labelled(r, classes=5)["labels"]["meshes"][mesh] = encode_labels(np.full(r["per_mesh"][1]["faces"], 5))
@@ -204,6 +210,7 @@ IMPOSSIBLE = {
     "split tag missing": lambda r: (r["tags"].pop("split"), "tags lack ['split']")[1],
     # per-face labels (issue 50)
     "labels one short": short_labels,
+    "labels inflating to 10 MB": labels_inflating,
     "a label out of range": label_out_of_range,
     "labels not encoded": labels_not_encoded,
     "labels of another mesh": labels_of_another_mesh,
