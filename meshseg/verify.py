@@ -126,8 +126,10 @@ def verify(chosen, scratch: Path, tol: float = TOLERANCE, hashes=None, say=print
         if today != h:
             out = Outcome(path, record, "stale", {}, 0.0, f"today's config hash {today}")
         else:
-            failure = None if tracker.finished(h) else remake(record, uri, scratch / "logs")
-            run = tracker.finished(h)
+            run, failure = tracker.finished(h), None
+            if run is None:  # not made in this scratch store yet
+                failure = remake(record, uri, scratch / "logs")
+                run = tracker.finished(h)
             if run is None:
                 why = failure or "the run made again has another config hash"
                 out = Outcome(path, record, "failed", {}, time.perf_counter() - start, why)
