@@ -95,7 +95,7 @@ def test_results_commands_say_what_is_wrong_before_opening_a_store(tmp_path):
     store = tmp_path / "new/mlflow.db"
     uri = f"tracking.uri=sqlite:///{store}"
     r = cli("meshseg.results", "exprot")
-    assert r.returncode == 1 and r.stderr.startswith("error: unknown action 'exprot': choose export or import")
+    assert r.returncode == 1 and r.stderr.startswith("error: unknown action 'exprot': choose export, import or verify")
     one_error_line(
         cli("meshseg.results", "export", f"out={tmp_path / 'a_file'}", uri), "is a file; it must be a folder"
     )
