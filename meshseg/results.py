@@ -2,7 +2,8 @@
 
     python -m meshseg.results export [tracking.uri=...] [out=results]
     python -m meshseg.results import [dir=results] [tracking.uri=...]
-    python -m meshseg.results verify [dir=results] [where=TAG=VALUE,...] [n=N] [seed=0] [tol=0.005] [out=reports/verify]
+    python -m meshseg.results verify [dir=results] [where=TAG=VALUE,...] [n=N] [seed=0] [tol=0.005] [attach=false]
+                                     [scratch=PATH] [out=reports/verify]
 
 MLflow is the system of record while running; `results/` is the one that ships (DESIGN "Tracking
 contract"). A record holds what the report and `reproduce` need: the run's tags (config hash, fold, data
@@ -13,7 +14,8 @@ the store.
 
 Import recreates each record as a FINISHED run with the same tags, params, metrics, `config.yaml` and
 `per_mesh.csv`, so the report, `reproduce` (which then skips it), the UI and the notebooks see it. It is
-idempotent, also beside another import or a sweep (each run is claimed like a fold's), each record is
+idempotent, also beside another import or a sweep (each run is claimed like a fold's); a record that gained
+labels since its run was imported (`verify attach=true`) gives them to that run if it has none. Each record is
 checked whole before its run is made, and a record whose config hash the
 current code would no longer give to its overrides and fold (the config changed since) is reported and
 skipped, never mixed in. A record is refused, with one line naming its file and why, when it is not whole
@@ -488,9 +490,11 @@ class ImportReport:
     imported: list[Path] = field(default_factory=list)
     present: list[Path] = field(default_factory=list)  # a FINISHED run of that config is in the store already
     refused: list[tuple[Path, str]] = field(default_factory=list)
+    labelled: list[Path] = field(default_factory=list)  # present, and given the record's labels it lacked
 
     def summary(self) -> str:
-        return f"imported {len(self.imported)}, already present {len(self.present)}, refused {len(self.refused)}"
+        text = f"imported {len(self.imported)}, already present {len(self.present)}, refused {len(self.refused)}"
+        return text + (f"; labels added to {len(self.labelled)} present runs" if self.labelled else "")
 
 
 def import_records(tracker: Tracker, root: Path) -> ImportReport:
@@ -518,6 +522,8 @@ def _import_records(tracker: Tracker, root: Path) -> ImportReport:
         chash = record["config_hash"]
         if chash in have:
             report.present.append(path)
+            if record.get("labels") and _add_labels(tracker, chash, record):
+                report.labelled.append(path)
             continue
         now = current_hash(record)
         if now != chash:
@@ -545,10 +551,31 @@ def _import_records(tracker: Tracker, root: Path) -> ImportReport:
     return report
 
 
+def _label_arrays(record: dict) -> dict | None:
+    """The record's labels as FoldRecord.PREDICTIONS arrays (labels_<mesh> and classes), or None."""
+    import numpy as np
+
+    labels = record.get("labels")
+    if not labels:
+        return None
+    arrays = {f"labels_{m}": decode_labels(t) for m, t in labels["meshes"].items()}
+    arrays["classes"] = np.array(labels["classes"])
+    return arrays
+
+
+def _add_labels(tracker: Tracker, chash: str, record: dict) -> bool:
+    """A record that gained labels since its run was imported (e.g. by `verify attach=true`) gives them to that
+    run, which has no per-face predictions yet; a run with its own predictions keeps them. True if added."""
+    run = tracker.finished(chash)
+    if run is None or FoldRecord.PREDICTIONS in {a.path for a in tracker.client.list_artifacts(run.info.run_id)}:
+        return False
+    tracker.log_predictions(run.info.run_id, _label_arrays(record))
+    return True
+
+
 def _fill(tracker: Tracker, run_id: str, record: dict) -> None:
     """A claimed run made into the record's FINISHED run: params, metrics, config, per-mesh table and, where the
     record has them, the per-face labels (the predictions artifact with labels alone)."""
-    import numpy as np
     from mlflow.entities import Metric, Param
 
     metrics, counts = record["metrics"], record.get("counts", {})
@@ -558,11 +585,7 @@ def _fill(tracker: Tracker, run_id: str, record: dict) -> None:
     metrics = [Metric(k, float(v), t, 0) for k, v in metrics.items()]
     for i in range(0, max(len(params), len(metrics)), 100):
         tracker.client.log_batch(run_id, metrics=metrics[i : i + 100], params=params[i : i + 100])
-    labels = record.get("labels")
-    arrays = None
-    if labels:
-        arrays = {f"labels_{m}": decode_labels(t) for m, t in labels["meshes"].items()}
-        arrays["classes"] = np.array(labels["classes"])
+    arrays = _label_arrays(record)
     tracker.log_fold(run_id, OmegaConf.to_yaml(OmegaConf.create(record["config"])), record["per_mesh"], arrays)
     tracker.client.set_terminated(run_id, "FINISHED", end_time=record["end_time"])
 
@@ -607,7 +630,7 @@ def main(argv=None) -> None:
                 sys.exit(ERROR_EXIT)
 
 
-VERIFY_KEYS = ("where", "n", "seed", "tol", "scratch")
+VERIFY_KEYS = ("where", "n", "seed", "tol", "attach", "scratch")
 
 
 def _setting(own: dict, key: str, default: str, kind, low) -> float | int:
@@ -620,6 +643,23 @@ def _setting(own: dict, key: str, default: str, kind, low) -> float | int:
     if value is None or value < low:
         raise ConfigError(f"{key}={text} is not allowed: give {'an integer' if kind is int else 'a number'} >= {low}")
     return value
+
+
+def attach_labels(tracker: Tracker, run, path: Path, record: dict) -> bool:
+    """`verify attach=true`: the record at `path`, which has no labels, given those of `run` (its fold made again,
+    agreeing with it), checked like any record and written back; False where the run has none to give."""
+    with tempfile.TemporaryDirectory(prefix="meshseg-verify-") as tmp:
+        labels = _run_labels(tracker, run.info.run_id, [row["mesh"] for row in record["per_mesh"]], tmp)
+    if labels is None:
+        return False
+    labelled = {**record, "labels": labels}
+    why = check_record(labelled)
+    if why is not None:
+        log.warning("labels not attached to %s: %s", path, why)
+        return False
+    write_record(path, labelled)
+    record["labels"] = labels
+    return True
 
 
 def verify_main(own: dict) -> None:
@@ -635,16 +675,26 @@ def verify_main(own: dict) -> None:
     n = _setting(own, "n", "", int, 1) if "n" in own else None
     seed = _setting(own, "seed", "0", int, 0)
     tol = _setting(own, "tol", str(V.TOLERANCE), float, 0.0)
+    attach = own.get("attach", "false").lower()
+    if attach not in ("true", "false"):
+        raise ConfigError(f"attach={own['attach']} is not allowed: give true or false")
     out = Path(own.get("out", "reports/verify"))
     check_output_folder(out, "out")
     records, unreadable = read_records(root)
     for path, why in unreadable:
         print(f"refused {path}: {why}", file=sys.stderr)
-    chosen = V.choose(records, where, n, seed)
+    chosen, choice = V.choose(records, where, n, seed), V.choice_text(where, n, seed)
+
+    def progress(outcomes, total):  # the table rewritten after each record: a verify cut short keeps its part
+        V.say(outcomes, total)
+        V.write_table(out, V.table_files(outcomes, root, tol, choice, total))
+
     with tempfile.TemporaryDirectory(prefix="meshseg-verify-") as tmp:
         scratch = Path(own.get("scratch", tmp))
-        outcomes = V.verify(chosen, scratch, tol, hashes=current_hash)
-    V.write_table(out, V.table_files(outcomes, root, tol, where, n, seed))
+        adds = attach_labels if attach == "true" else None
+        outcomes = V.verify(chosen, scratch, tol, hashes=current_hash, attach=adds, progress=progress)
+    if not chosen:
+        V.write_table(out, V.table_files([], root, tol, choice, 0))
     print(f"verify: {V.summary(outcomes)}; table in {out}")
     if any(o.status in ("differs", "failed") for o in outcomes):
         sys.exit(ERROR_EXIT)

@@ -1,10 +1,11 @@
 """`python -m meshseg.results verify`: shipped records made again and compared, mesh by mesh.
 
-    python -m meshseg.results verify [dir=results] [where=model=rf,category=Hand] [n=30] [seed=0]
-                                     [tol=0.005] [scratch=PATH] [out=reports/verify]
+    python -m meshseg.results verify [dir=results] [where=model=rf,category=Hand|Ant] [n=30] [seed=0]
+                                     [tol=0.005] [attach=false] [scratch=PATH] [out=reports/verify]
 
 A record says which code, data, fold and settings produced it; verify checks that. The records under `dir`
-whose tags match `where` (comma-separated tag=value pairs; none: all) are chosen, and with `n` a seeded sample
+whose tags match `where` (comma-separated tag=value pairs, a value's alternatives joined by `|`; none: all)
+are chosen, and with `n` a seeded sample
 of n of them, spread over methods and splits: each (model, split) group shuffled with `seed`, then taken in
 turn. Each chosen record's run is made again by `python -m meshseg.run` from the record's own Hydra overrides
 (its category and fold among them) into a scratch store (`scratch`, else a temporary one), and its per-mesh
@@ -20,8 +21,11 @@ accuracies are compared with the record's:
 fp32 training is deterministic on one machine but not across instruction sets (AVX2 and AVX-512 round
 differently), so a difference beside two different CPU lines is a finding, not a failure: the table
 gives both machines. A run already in the scratch store at the record's config hash is compared, not made
-again. The table goes to `out` (verify.md, verify.csv); the command exits 1 when any record differs or
-cannot be made again (failed).
+again (so a verify cut short resumes with the same `scratch`). With `attach=true`, a record without per-face
+labels whose run agrees (identical or within) gets the labels of the run made again, written into its file:
+how the figures' runs from before records carried labels get them (experiments/figures_psb.yaml). The
+table goes to `out` (verify.md, verify.csv), rewritten after each record; the command exits 1 when any
+record differs or cannot be made again (failed).
 """
 
 from __future__ import annotations
@@ -55,22 +59,24 @@ class Outcome:
     delta: dict[str, float]  # column -> largest |Δ| over the test meshes (empty when not re-made)
     seconds: float
     why: str = ""
+    attached: bool = False  # the record was given the labels of the run made again
 
 
-def parse_where(text: str | None) -> dict[str, str]:
-    """'model=rf,category=Hand' -> {'model': 'rf', 'category': 'Hand'}."""
+def parse_where(text: str | None) -> dict[str, tuple[str, ...]]:
+    """'model=rf,category=Hand|Ant' -> {'model': ('rf',), 'category': ('Hand', 'Ant')}."""
     out = {}
     for part in filter(None, (text or "").split(",")):
         key, sep, value = part.partition("=")
-        if not sep or not key or not value:
-            raise ConfigError(f"where={text}: {part!r} is not tag=value (e.g. where=model=rf,split=loo)")
-        out[key.strip()] = value.strip()
+        values = tuple(v.strip() for v in value.split("|"))
+        if not sep or not key or not all(values):
+            raise ConfigError(f"where={text}: {part!r} is not tag=value[|value...] (e.g. where=model=rf,split=loo)")
+        out[key.strip()] = values
     return out
 
 
-def choose(records: list[tuple[Path, dict]], where: dict[str, str], n: int | None, seed: int):
+def choose(records: list[tuple[Path, dict]], where: dict[str, tuple[str, ...]], n: int | None, seed: int):
     """The records matching `where`; with n, a seeded sample of n spread over (model, split) groups."""
-    chosen = [(p, r) for p, r in records if all(str(r["tags"].get(k)) == v for k, v in where.items())]
+    chosen = [(p, r) for p, r in records if all(str(r["tags"].get(k)) in v for k, v in where.items())]
     if n is None or n >= len(chosen):
         return chosen
     rng, groups = random.Random(seed), {}
@@ -112,15 +118,17 @@ def per_mesh(tracker: Tracker, run) -> list[dict]:
         return FoldRecord.read_per_mesh(tracker.client.download_artifacts(run.info.run_id, FoldRecord.PER_MESH, tmp))
 
 
-def verify(chosen, scratch: Path, tol: float = TOLERANCE, hashes=None, say=print) -> list[Outcome]:
-    """Each chosen (path, record) made again in the store under `scratch` and compared; `hashes(record)` gives
-    today's config hash of a record (meshseg.results.current_hash)."""
+def verify(chosen, scratch: Path, tol: float = TOLERANCE, hashes=None, attach=None, progress=None) -> list[Outcome]:
+    """Each chosen (path, record) made again in the store under `scratch` and compared. `hashes(record)` gives
+    today's config hash of a record (meshseg.results.current_hash); `attach(tracker, run, path, record)`, if
+    given, gives a record without labels those of its agreeing run (True if it did); `progress(outcomes, n)`
+    is called after each record (default: print its line)."""
     os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # a bar per download otherwise
     uri = f"sqlite:///{scratch.resolve()}/mlflow.db"
     scratch.mkdir(parents=True, exist_ok=True)
     tracker = Tracker(uri, "meshseg", str(scratch.resolve() / "artifacts"))
     outcomes = []
-    for i, (path, record) in enumerate(chosen, 1):
+    for path, record in chosen:
         start, h = time.perf_counter(), record["config_hash"]
         today = hashes(record) if hashes else h
         if today != h:
@@ -136,9 +144,18 @@ def verify(chosen, scratch: Path, tol: float = TOLERANCE, hashes=None, say=print
             else:
                 status, delta = compare(record["per_mesh"], per_mesh(tracker, run), tol)
                 out = Outcome(path, record, status, delta, time.perf_counter() - start)
-        say(f"verify {i}/{len(chosen)}: {record['name']}: {out.status}" + (f" ({out.why})" if out.why else ""))
+                if attach and status in ("identical", "within") and not record.get("labels"):
+                    out.attached = attach(tracker, run, path, record)
         outcomes.append(out)
+        (progress or say)(outcomes, len(chosen))
     return outcomes
+
+
+def say(outcomes: list[Outcome], n: int) -> None:
+    """The progress line of the last record verified."""
+    o = outcomes[-1]
+    note = f" ({o.why})" if o.why else "; labels attached" if o.attached else ""
+    print(f"verify {len(outcomes)}/{n}: {o.record['name']}: {o.status}{note}")
 
 
 HEADER = (
@@ -152,6 +169,7 @@ HEADER = (
     "max Δ acc",
     "max Δ acc_raw",
     "seconds",
+    "labels",
     "record's machine",
     "note",
 )
@@ -174,6 +192,7 @@ def rows(outcomes: list[Outcome], root: Path) -> list[tuple]:
                 o.status,
                 *deltas,
                 f"{o.seconds:.0f}",
+                "attached" if o.attached else "yes" if o.record.get("labels") else "",
                 t.get("machine", ""),
                 o.why.replace("\n", " ").replace("|", "/"),
             )
@@ -184,20 +203,28 @@ def rows(outcomes: list[Outcome], root: Path) -> list[tuple]:
 def summary(outcomes: list[Outcome]) -> str:
     counts = {s: sum(o.status == s for o in outcomes) for s in ("identical", "within", "differs", "stale", "failed")}
     deltas = [max(o.delta.values()) for o in outcomes if o.delta]
+    attached = sum(o.attached for o in outcomes)
     text = ", ".join(f"{v} {k}" for k, v in counts.items() if v) or "nothing chosen"
-    return text + (f"; largest per-mesh |Δ| {max(deltas):.2e}" if deltas else "")
+    text += f"; largest per-mesh |Δ| {max(deltas):.2e}" if deltas else ""
+    return text + (f"; labels attached to {attached} records" if attached else "")
 
 
-def table_files(outcomes: list[Outcome], root: Path, tol: float, where: dict, n, seed: int) -> dict[str, str]:
-    """verify.md and verify.csv."""
+def choice_text(where: dict, n: int | None, seed: int) -> str:
+    """What was chosen, in words: the filter and the sample."""
+    text = ", ".join(f"{k}={'|'.join(v)}" for k, v in where.items()) or "every record"
+    return text + (f", a sample of {n} (seed {seed})" if n else "")
+
+
+def table_files(outcomes: list[Outcome], root: Path, tol: float, choice: str, chosen: int) -> dict[str, str]:
+    """verify.md and verify.csv (`choice`: choice_text; `chosen`: how many records it chose)."""
     body = rows(outcomes, root)
     buf = io.StringIO()
     csv.writer(buf).writerows([HEADER, *body])
-    choice = ", ".join(f"{k}={v}" for k, v in where.items()) or "every record"
+    done = f" ({len(outcomes)} of {chosen} done so far)" if len(outcomes) < chosen else ""
     md = [
         "# Shipped records made again",
         "",
-        f"Records: {choice} under `{root}`" + (f", a sample of {n} (seed {seed})" if n else "") + ".",
+        f"Records: {choice} under `{root}`.{done}",
         f"This machine: {machine('cpu')}. Tolerance: per-mesh |Δ| <= {tol:g} is 'within'.",
         f"Outcome: {summary(outcomes)}.",
         "",

@@ -3,11 +3,12 @@
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 from conftest import smoke_env
 
 from meshseg.errors import ConfigError
-from meshseg.results import export, load_records, main, write_record
+from meshseg.results import decode_labels, export, import_records, load_records, main, write_record
 from meshseg.tracking import Tracker
 from meshseg.verify import choose, compare, parse_where, verify
 
@@ -65,7 +66,10 @@ def test_compare_statuses():
 def test_a_stale_record_is_reported_not_made_again(rf_record, tmp_path):
     root, record = rf_record
     [out] = verify(
-        [(root / "x.json", record)], tmp_path / "scratch", hashes=lambda r: "0123456789abcdef", say=lambda s: None
+        [(root / "x.json", record)],
+        tmp_path / "scratch",
+        hashes=lambda r: "0123456789abcdef",
+        progress=lambda o, n: None,
     )
     assert (out.status, out.why, out.delta) == ("stale", "today's config hash 0123456789abcdef", {})
     assert not (tmp_path / "scratch" / "logs").exists()  # no run was launched
@@ -83,6 +87,44 @@ def test_a_sample_is_seeded_and_spread_over_methods_and_splits():
     assert len(sample) == 5 and len({(r["tags"]["model"], r["tags"]["split"]) for _, r in sample}) == 5
     assert sample == choose(records, {}, 5, seed=3) and sample != choose(records, {}, 5, seed=4)
     assert [p.name for p, _ in choose(records, {"model": "gbdt"}, None, 0)] == ["gbdt-loo-0.json"]
-    assert parse_where("model=rf,split=loo") == {"model": "rf", "split": "loo"}
+    assert parse_where("model=rf,split=loo") == {"model": ("rf",), "split": ("loo",)}
+    either = parse_where("model=gbdt|cnn1d,split=loo")
+    assert either == {"model": ("gbdt", "cnn1d"), "split": ("loo",)}
+    assert sorted(p.name for p, _ in choose(records, either, None, 0)) == [
+        *(f"cnn1d-loo-{i}.json" for i in range(5)),
+        "gbdt-loo-0.json",
+    ]
     with pytest.raises(ConfigError, match=r"where=model: 'model' is not tag=value"):
         parse_where("model")
+    with pytest.raises(ConfigError, match=r"where=model=rf\|: 'model=rf\|' is not tag=value"):
+        parse_where("model=rf|")
+
+
+def test_attach_gives_a_record_without_labels_those_of_its_run_made_again_and_import_passes_them_on(
+    rf_record, tmp_path, cache_dir, monkeypatch
+):
+    root, record = rf_record
+    assert record.get("labels")  # the smoke run logged them: the reference
+    for k, v in smoke_env(tmp_path, cache_dir).items():
+        monkeypatch.setenv(k, v)
+    bare = {k: v for k, v in record.items() if k != "labels"}
+    path = tmp_path / "records" / "synthetic" / record["tags"]["category"] / f"{record['config_hash']}.json"
+    write_record(path, bare)
+    store = Tracker(f"sqlite:///{tmp_path}/store/mlflow.db", "meshseg", str(tmp_path / "store" / "artifacts"))
+    assert len(import_records(store, tmp_path / "records").imported) == 1  # a run without per-face labels
+
+    args = ["verify", f"dir={tmp_path / 'records'}", f"scratch={tmp_path / 'scratch'}", f"out={tmp_path / 'v'}"]
+    main(args)
+    assert "labels" not in json.loads(path.read_text())  # attach=false: the record is left alone
+    main([*args, "attach=true"])
+    labelled = json.loads(path.read_text())
+    assert labelled == record  # the labels of the run made again are the exported ones, bit for bit
+    assert "labels attached to 1 records" in (tmp_path / "v" / "verify.md").read_text()
+
+    rep = import_records(store, tmp_path / "records")  # the present run gets them; a second time nothing
+    assert (len(rep.imported), len(rep.present), len(rep.labelled)) == (0, 1, 1)
+    assert len(import_records(store, tmp_path / "records").labelled) == 0
+    run = store.finished(record["config_hash"])
+    arrays = np.load(store.client.download_artifacts(run.info.run_id, "predictions.npz", str(tmp_path / "dl")))
+    for mesh, text in record["labels"]["meshes"].items():
+        assert np.array_equal(arrays[f"labels_{mesh}"], decode_labels(text))

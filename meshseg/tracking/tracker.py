@@ -216,16 +216,24 @@ class Tracker:
         FoldRecord's order) and the per-face predictions, each array cast to its FoldRecord dtype (None: a
         run imported from a `results/` record without labels; a record's labels come as the `labels_` arrays alone)."""
         R = FoldRecord
+        arrays = None if predictions is None else R.prediction_arrays(predictions)  # a bad key: nothing logged
         with tempfile.TemporaryDirectory() as tmp:
             d = Path(tmp)
             (d / R.CONFIG).write_text(config_yaml)
             (d / R.PER_MESH).write_text(R.per_mesh_csv(rows))
-            arrays = R.prediction_arrays(predictions or {})
             for name in (R.CONFIG, R.PER_MESH):
                 self.client.log_artifact(run_id, str(d / name))
-            if predictions is not None:
-                np.savez_compressed(d / R.PREDICTIONS, **arrays)
-                self.client.log_artifact(run_id, str(d / R.PREDICTIONS))
+        if arrays is not None:
+            self.log_predictions(run_id, arrays)
+
+    def log_predictions(self, run_id: str, predictions: dict[str, np.ndarray]) -> None:
+        """The per-face arrays as the run's FoldRecord.PREDICTIONS, each cast to its FoldRecord dtype (e.g. the
+        labels a `results/` record gained after its run was imported)."""
+        arrays = FoldRecord.prediction_arrays(predictions)
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / FoldRecord.PREDICTIONS
+            np.savez_compressed(path, **arrays)
+            self.client.log_artifact(run_id, str(path))
 
     def log_json(self, run_id: str, name: str, data) -> None:
         """`data` as the run's artifact `name` (JSON)."""
