@@ -121,25 +121,20 @@ def _rasterise(x: np.ndarray, y: np.ndarray, z: np.ndarray, size: int) -> np.nda
     return face
 
 
-def render_labels(
-    vertices: np.ndarray,
-    faces: np.ndarray,
-    labels: np.ndarray,
-    n_labels: int,
-    *,
-    size: int = 320,
-    camera: Camera = _DEFAULT_CAMERA,
+def render_faces(
+    vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray, *, size: int = 320, camera: Camera = _DEFAULT_CAMERA
 ) -> np.ndarray:
-    """(size, size, 3) uint8 flat-shaded orthographic view, each face in its label's colour, white background.
+    """(size, size, 3) uint8 flat-shaded orthographic view, each face in its (F, 3) RGB colour in [0, 1], white
+    background.
 
     The `camera` follows matplotlib's 3D axes (azim about z, elev above the xy plane, degrees); the projected
     mesh is centred and scaled to fill the image up to a small margin. Shading is Lambert with the light at the
-    camera (0.35 + 0.65 |n.l|), so colours keep their hue. Labels outside [0, n_labels) are grey.
+    camera (0.35 + 0.65 |n.l|), so colours keep their hue.
     """
     v, f = np.asarray(vertices, np.float64), np.asarray(faces, np.int64)
-    labels = np.asarray(labels, np.int64)
-    if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3 or labels.shape != (len(f),):
-        raise ValueError(f"need vertices (V, 3), faces (F, 3), labels (F,); got {v.shape}, {f.shape}, {labels.shape}")
+    colors = np.asarray(colors, np.float64)
+    if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3 or colors.shape != (len(f), 3):
+        raise ValueError(f"need vertices (V, 3), faces (F, 3), colors (F, 3); got {v.shape}, {f.shape}, {colors.shape}")
     image = np.full((size * size, 3), 255, np.uint8)
     if not len(f):
         return image.reshape(size, size, 3)
@@ -152,11 +147,48 @@ def render_labels(
 
     normals = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
     shade = 0.35 + 0.65 * np.abs(normals @ toward) / np.maximum(np.linalg.norm(normals, axis=1), 1e-300)
-    palette = np.vstack([label_colors(n_labels), UNLABELLED])
-    colors = palette[np.where((labels >= 0) & (labels < n_labels), labels, n_labels)] * shade[:, None]
     hit = face_of >= 0
-    image[hit] = np.round(255 * colors[face_of[hit]]).astype(np.uint8)
+    image[hit] = np.round(255 * (colors * shade[:, None])[face_of[hit]]).astype(np.uint8)
     return image.reshape(size, size, 3)
+
+
+def render_labels(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    labels: np.ndarray,
+    n_labels: int,
+    *,
+    size: int = 320,
+    camera: Camera = _DEFAULT_CAMERA,
+) -> np.ndarray:
+    """render_faces with each face in its label's colour (label_colors); labels outside [0, n_labels) are grey."""
+    labels = np.asarray(labels, np.int64)
+    if labels.shape != (len(faces),):
+        raise ValueError(f"need one label per face: {len(faces)} faces, labels {labels.shape}")
+    palette = np.vstack([label_colors(n_labels), UNLABELLED])
+    colors = palette[np.where((labels >= 0) & (labels < n_labels), labels, n_labels)]
+    return render_faces(vertices, faces, colors, size=size, camera=camera)
+
+
+def value_colors(values: np.ndarray, cmap: str = "viridis", limits: tuple[float, float] | None = None) -> np.ndarray:
+    """(F, 3) colours of per-face `values` by the colour map, from limits[0] to limits[1] (default: the values'
+    2nd and 98th percentiles, so that a few extreme faces do not wash the map out)."""
+    values = np.asarray(values, np.float64)
+    lo, hi = limits if limits is not None else np.percentile(values, [2, 98])
+    t = np.clip((values - lo) / (hi - lo if hi > lo else 1.0), 0, 1)
+    return colormaps[cmap](t)[:, :3]
+
+
+def principal_pose(vertices: np.ndarray) -> np.ndarray:
+    """The vertices in the frame of their principal axes, the longest as z (up in Camera's views) and the
+    shortest as y (the default camera looks nearly along it): every mesh of a figure shown by the same rule,
+    whatever pose its file has. Each axis points the way of the file's axis nearest to it, so a mesh stored
+    upright (along +y or +z) stays upright."""
+    v = np.asarray(vertices, np.float64)
+    c = v - v.mean(axis=0)
+    _, vecs = np.linalg.eigh(c.T @ c)  # ascending variance: shortest, middle, longest
+    vecs *= np.sign(vecs[np.abs(vecs).argmax(axis=0), range(3)])
+    return (c @ vecs)[:, [1, 0, 2]]
 
 
 def _area_accuracy(vertices: np.ndarray, faces: np.ndarray, pred: np.ndarray, gt: np.ndarray) -> float:
@@ -253,4 +285,80 @@ def confusion_png(matrix: np.ndarray, label_names: list[str], *, title: str = ""
     if title:
         ax.set_title(title)
     fig.tight_layout()
+    return _png(fig)
+
+
+@dataclass(frozen=True)
+class Panel:
+    """One picture of a grid: an image (None: nothing to draw, `title` says why) and its title."""
+
+    image: np.ndarray | None
+    title: str
+
+
+def grid_png(
+    panels: list[list[Panel]],
+    *,
+    title: str = "",
+    row_titles: list[str] | None = None,
+    legends: list[list[tuple[str, tuple[float, float, float]]]] | None = None,
+    note: str = "",
+) -> bytes:
+    """PNG of a grid of panels (rows of equal length), each with its title; `row_titles` at the left of each
+    row, `legends` (per grid column: (name, colour) pairs, or empty) under each column, `note` under the grid."""
+    n_rows, n_cols = len(panels), len(panels[0])
+    size = max((p.image.shape[0] for r in panels for p in r if p.image is not None), default=PANEL)
+    legend_rows = max((len(g) for g in legends or []), default=0)
+    fig = _figure(n_cols * (size + 20) + 120, n_rows * (size + 50) + 90 + 16 * legend_rows, layout="constrained")
+    axes = np.atleast_2d(fig.subplots(n_rows, n_cols, squeeze=False))
+    for i, row in enumerate(panels):
+        for j, panel in enumerate(row):
+            ax = axes[i, j]
+            ax.set_xticks([])
+            ax.set_yticks([])
+            for side in ax.spines.values():
+                side.set_visible(False)
+            if panel.image is not None:
+                ax.imshow(panel.image, interpolation="nearest")
+            else:
+                ax.imshow(np.full((size, size, 3), 255, np.uint8))
+            ax.set_title(panel.title, fontsize="small")
+            if row_titles and j == 0:
+                ax.set_ylabel(row_titles[i])
+            if legends and i == n_rows - 1 and legends[j]:
+                handles = [Patch(color=c, label=name) for name, c in legends[j]]
+                ax.legend(
+                    handles=handles, loc="upper center", bbox_to_anchor=(0.5, 0), fontsize="x-small", frameon=False
+                )
+    if title:
+        fig.suptitle(title, fontsize="medium")
+    if note:
+        fig.supxlabel(note, fontsize="small")
+    return _png(fig)
+
+
+def feature_image_png(
+    image: np.ndarray, bands: list[tuple[str, int, int]], *, title: str = "", cmap: str = "coolwarm"
+) -> bytes:
+    """PNG of a feature vector laid out as an image (ToG15's 30 x 20), values symmetric about 0, with `bands`
+    ((name, first, stop) flat indices of each feature family, row-major) parted by lines and named at the left."""
+    h, w = image.shape
+    fig = _figure(140 + 22 * w, 90 + 22 * h, layout="constrained")
+    ax = fig.add_subplot()
+    limit = float(np.nanmax(np.abs(image))) or 1.0
+    im = ax.imshow(image, cmap=cmap, vmin=-limit, vmax=limit, interpolation="nearest")
+    ticks, names = [], []
+    for name, first, stop in bands:
+        ticks.append((first // w + (stop - 1) // w) / 2)
+        names.append(name)
+        if first > 0:  # the staircase between flat indices < first and >= first (cells are 1 x 1)
+            r, c = divmod(first, w)
+            x = [-0.5, c - 0.5, c - 0.5, w - 0.5] if c else [-0.5, w - 0.5]
+            y = [r + 0.5, r + 0.5, r - 0.5, r - 0.5] if c else [r - 0.5, r - 0.5]
+            ax.plot(x, y, color="black", linewidth=1.5)
+    ax.set_yticks(ticks, names, fontsize="small")
+    ax.set_xticks([])
+    fig.colorbar(im, ax=ax, shrink=0.8)
+    if title:
+        ax.set_title(title, fontsize="small")
     return _png(fig)

@@ -79,5 +79,5 @@ def test_every_config_option_named_exists():
 
 @pytest.mark.parametrize("manifest", sorted(p.stem for p in (REPO / "experiments").glob("*.yaml")))
 def test_the_readme_has_one_command_per_manifest(manifest):
-    command = "report" if manifest == "claims" else "reproduce"
+    command = "report" if manifest in ("claims", "figures") else "reproduce"
     assert f"python -m meshseg.{command} experiments/{manifest}.yaml" in text(REPO / "README.md")

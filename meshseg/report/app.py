@@ -4,6 +4,7 @@ the published numbers, written under <report.out_dir>/<manifest name>/ and logge
     python -m meshseg.report experiments/table2_psb_5fold.yaml
     python -m meshseg.report experiments/table2_psb_5fold.yaml report.sets=[Teddy] report.metric=acc_raw
     python -m meshseg.report experiments/claims.yaml    # does the paper reproduce? every claim judged (reports/claims/)
+    python -m meshseg.report experiments/figures.yaml   # the paper's mesh figures from the runs (reports/figures/)
 
 `report.*` settings: conf/report.yaml. Every other override is a run override (budget=cpu, tracking.uri=...,
 dataset.root=...) applied to each cell's run config. Hydra's flags work as for meshseg.run (--cfg job).
@@ -25,6 +26,8 @@ from meshseg.report.cells import Table
 from meshseg.report.claims import claims_from_config, summary_table
 from meshseg.report.claims_file import is_claims_file, load_claims
 from meshseg.report.config import check_config, compose_config, hydra_argv
+from meshseg.report.figures import figures_from_config, is_figures_file, load_figures
+from meshseg.report.figures import summary as figures_summary
 from meshseg.report.manifest import load_manifest
 from meshseg.report.publish import build, publish, requested, summary
 
@@ -60,21 +63,22 @@ def run_app(argv, app, config_name: str, doc: str) -> None:
 
 
 def _check_before_hydra(app_args, config_name: str) -> None:
-    """A missing or malformed manifest (or claims file), or a `report.*` setting it does not allow, refused
+    """A missing or malformed manifest (claims or figures file), or a `report.*` setting it does not allow, refused
     before Hydra makes the command's log folder. Any other exception is a bug: left for the app to meet again,
     where Hydra reports it with its traceback."""
     from hydra import compose
 
     path = next((a.split("=", 1)[1] for a in app_args if a.startswith("manifest=")), "")
     try:
-        claims = bool(path) and is_claims_file(path)
-        manifest = load_claims(path) if claims else load_manifest(path) if path else None
+        kind = "" if not path else "claims" if is_claims_file(path) else "figures" if is_figures_file(path) else "table"
+        load = {"claims": load_claims, "figures": load_figures, "table": load_manifest}.get(kind)
+        manifest = load(path) if load else None
         if not path or any(a.startswith("-") for a in app_args):
             return  # Hydra's own flags (--cfg job, -cn NAME) are the app's to read
         with hydra_scope():
             cfg = compose(config_name, overrides=list(app_args))
         check_config(cfg)
-        if not claims:
+        if kind == "table":
             requested(manifest, cfg.report)
     except MeshsegError:
         raise
@@ -90,6 +94,11 @@ def _report_app(cfg: DictConfig) -> None:
             claims, files = claims_from_config(cfg)
             print(summary_table(claims))
             print("\n".join(f"wrote {f}" for f in files))
+            return
+        if is_figures_file(cfg.manifest):  # experiments/figures.yaml: the paper's figures drawn from the runs
+            check_config(cfg)
+            _, drawn, files = figures_from_config(cfg)
+            print(figures_summary(drawn, files))
             return
         table, files, run_id = report_from_config(cfg)
     print(summary(table, files, run_id))

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import logging
 import math
-import tempfile
 
 import numpy as np
 import pandas as pd
@@ -23,7 +22,6 @@ from omegaconf import OmegaConf
 
 from meshseg.features.geometry import face_adjacency
 from meshseg.report.cells import Table
-from meshseg.tracking import FoldRecord
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +64,7 @@ def where_errors_lie(table: Table, overrides=()) -> tuple[pd.DataFrame, int]:
     from meshseg.config import run_config
     from meshseg.data.datasets import build_dataset
     from meshseg.report.predictions import labelling
+    from meshseg.report.runs import run_predictions
     from meshseg.tracking import store_uri
 
     prefix = "labels_" if table.metric == "acc" else "labels_raw_"
@@ -84,7 +83,7 @@ def where_errors_lie(table: Table, overrides=()) -> tuple[pd.DataFrame, int]:
         dataset = datasets[spec]
         client = MlflowClient(tracking_uri=store_uri(cfg.tracking.uri))
         for run_id, meshes in part.groupby("run_id", sort=False, dropna=False):
-            arrays = None if column.predictions is not None else _predictions(client, run_id)
+            arrays = None if column.predictions is not None else run_predictions(client, run_id)
             for r in meshes.itertuples():
                 if column.predictions is None and (arrays is None or f"{prefix}{r.mesh}" not in arrays):
                     unread += 1
@@ -104,21 +103,6 @@ def where_errors_lie(table: Table, overrides=()) -> tuple[pd.DataFrame, int]:
     if unread:
         log.info("where errors lie: %d test meshes have no per-face labels to read here", unread)
     return pd.DataFrame(rows, columns=list(COLUMNS)), unread
-
-
-def _predictions(client, run_id) -> dict[str, np.ndarray] | None:
-    """The run's per-face arrays (FoldRecord.PREDICTIONS), or None where it has none (a results record, or a
-    run imported from one)."""
-    from mlflow.exceptions import MlflowException
-
-    if not isinstance(run_id, str) or "/" in run_id:  # a results record's path stands for its run id
-        return None
-    try:
-        with tempfile.TemporaryDirectory() as tmp:
-            with np.load(client.download_artifacts(run_id, FoldRecord.PREDICTIONS, tmp)) as z:
-                return {k: z[k] for k in z.files}
-    except (MlflowException, OSError):  # no such artifact: a run imported from results/
-        return None
 
 
 def summary(frame: pd.DataFrame, pairs) -> pd.DataFrame:

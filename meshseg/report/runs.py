@@ -113,3 +113,19 @@ def _in_order(wanted: pd.DataFrame, rows: list[dict]) -> pd.DataFrame:
     order = wanted.assign(order=range(len(wanted)))
     meshes = order.merge(runs, on="config_hash", how="inner")
     return meshes.sort_values(["order", "line"], kind="stable").drop(columns=["order", "line"]).reset_index(drop=True)
+
+
+def run_predictions(client, run_id) -> dict | None:
+    """A run's per-face arrays (FoldRecord.PREDICTIONS: labels_<mesh>, ...), or None where it has none (a run
+    imported from a results record without labels; a record's own path, which stands for its run id)."""
+    import numpy as np
+    from mlflow.exceptions import MlflowException
+
+    if not isinstance(run_id, str) or "/" in run_id:
+        return None
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            with np.load(client.download_artifacts(run_id, FoldRecord.PREDICTIONS, tmp)) as z:
+                return {k: z[k] for k in z.files}
+    except (MlflowException, OSError):  # no such artifact
+        return None
