@@ -349,8 +349,12 @@ def feature_image_png(
     im = ax.imshow(image, cmap=cmap, vmin=-limit, vmax=limit, interpolation="nearest")
     ticks, names = [], []
     for name, first, stop in bands:
-        ticks.append((first // w + (stop - 1) // w) / 2)
-        names.append(name)
+        at = (first // w + (stop - 1) // w) / 2
+        if ticks and at - ticks[-1] < 1:  # bands sharing a row: one label, or the names overprint
+            names[-1] += f", {name}"
+        else:
+            ticks.append(at)
+            names.append(name)
         if first > 0:  # the staircase between flat indices < first and >= first (cells are 1 x 1)
             r, c = divmod(first, w)
             x = [-0.5, c - 0.5, c - 0.5, w - 0.5] if c else [-0.5, w - 0.5]

@@ -303,7 +303,7 @@ def _labels(spec: FigureSpec, figures: FiguresFile, overrides, cfg) -> Drawn:
                 pred = (labels_of[key] or {}).get(f"labels_{mesh_id}")
                 if pred is None:
                     missing.append(str(r["config_hash"]))
-                    row_panels.append(Panel(None, f"{set_name} {mesh_id}: no labels in run {r['config_hash']}"))
+                    row_panels.append(Panel(None, f"{set_name} {mesh_id}: no labels (figures.md)"))
                     continue
                 _check_accuracy(pred, mesh, float(r["acc"]), f"{spec.key}: {row} on {set_name} {mesh_id}")
                 image = render_labels(pose, mesh.faces, pred, len(mesh.label_names), size=PANEL, camera=camera)
