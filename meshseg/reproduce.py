@@ -54,15 +54,23 @@ class MissingCell:
 
 def missing_cells(table: Table) -> list[MissingCell]:
     """Every incomplete (column, set) of the table, column by column (each column's sets in table order),
-    so the columns complete one after the other in the order the manifest or `report.columns` gives.
+    so the columns complete one after the other in the order the manifest or `report.columns` gives; a column
+    with `seeds:` makes one per seed that lacks runs there (its overrides end with that seed).
     Unavailable and n/a cells (outside the column's `sets:`) are not incomplete: none is launched."""
     sets = [row for row in table.rows if row.kind == "set"]
-    return [
-        MissingCell(row.label, c.column.key, tuple(c.overrides), c.category, tuple(c.missing))
-        for j in range(len(sets[0].cells) if sets else 0)
-        for row in sets
-        if (c := row.cells[j]).status == "incomplete"
-    ]
+    out = []
+    for j in range(len(sets[0].cells) if sets else 0):
+        for row in sets:
+            c = row.cells[j]
+            if c.status != "incomplete":
+                continue
+            if not c.missing_runs:
+                out.append(MissingCell(row.label, c.column.key, tuple(c.overrides), c.category, tuple(c.missing)))
+                continue
+            for seed in dict.fromkeys(s for s, _ in c.missing_runs):  # a column with `seeds:`: a sweep per seed
+                folds = tuple(f for s, f in c.missing_runs if s == seed)
+                out.append(MissingCell(row.label, c.column.key, (*c.overrides, f"seed={seed}"), c.category, folds))
+    return out
 
 
 @dataclass

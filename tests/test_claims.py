@@ -31,12 +31,13 @@ def table(sets: dict[str, tuple[list[float], list[float]]], missing: dict[str, i
             cells.append(Cell(col, pub, value, n_meshes=0 if gone else len(xs), folds=5, missing=gone, budget="cpu"))
             # raw accuracies: a's stand in for refined - raw = a - b
             raws = np.array(xb, float) if col is A else np.array(xs, float)
-            meshes += [(name, col.key, f"m{i}", float(x), r) for i, (x, r) in enumerate(zip(xs, raws))]
+            meshes += [(name, col.key, i, f"m{i}", float(x), r) for i, (x, r) in enumerate(zip(xs, raws))]
         cells.append(Cell(P, 94.0))
         rows.append(Row(name, "set", "G", tuple(cells)))
     groups = (Group("G", (), tuple(Set(s, s, (95.0, 93.0, 94.0)) for s in sets), None, (None, None, None)),)
     m = Manifest("t", "t", "", "", (), (A, B, P), groups, None, (None, None, None), Path("t.yaml"))
-    frame = pd.DataFrame(meshes, columns=["row", "column", "mesh", "acc", "acc_raw"]).assign(group="G")
+    # each mesh its own fold, one seed: leave-one-out, where the nested interval is the mesh bootstrap
+    frame = pd.DataFrame(meshes, columns=["row", "column", "fold", "mesh", "acc", "acc_raw"]).assign(group="G")
     return Table(m, tuple(rows), (), "acc", 0.95, meshes=frame)
 
 
@@ -65,6 +66,44 @@ def test_a_consistent_positive_difference_is_reproduced_and_its_reverse_contradi
     assert v.verdict == "reproduced" and v.ci[0] > 0 and v.budget == "cpu" and v.published == pytest.approx(2.0)
     flipped = table({"s1": noisy(-1.0), "s2": noisy(-1.5)})
     assert judge(claim(), flipped).verdict == "contradicted"
+
+
+def test_under_leave_one_out_with_one_seed_the_interval_is_the_mesh_bootstraps_to_the_last_digit():
+    v = judge(claim("every_set"), table({"s1": noisy(1.0), "s2": noisy(-0.2)}))
+    assert v.ci == v.ci_meshes and v.verdict == v.verdict_meshes and v.seeds == 1
+    assert [s.ci for s in v.sets] == [s.ci_meshes for s in v.sets]
+
+
+def reshaped(t: Table, folds: int, seeds: int = 1, shift: float = 0.0) -> Table:
+    """`t` with its meshes dealt into `folds` folds (mesh i in fold i % folds) and each run made at `seeds`
+    training seeds, seed k's accuracies of column a moved by k * shift."""
+    m = t.meshes.assign(fold=[int(x[1:]) % folds for x in t.meshes["mesh"]])
+    parts = [m.assign(seed=k, acc=m["acc"] + np.where(m["column"] == "a", k * shift, 0.0)) for k in range(seeds)]
+    return Table(t.manifest, t.rows, (), "acc", 0.95, meshes=pd.concat(parts, ignore_index=True))
+
+
+def width(ci) -> float:
+    return ci[1] - ci[0]
+
+
+def test_folds_that_differ_in_sign_widen_the_interval_beyond_the_mesh_bootstraps():
+    """Five folds of four meshes, a - b +3 on three folds and -3 on two: resampling whole folds sees the
+    folds' spread, which the mesh-level interval, treating the 20 meshes as independent, understates."""
+    b = list(RNG.uniform(80, 95, 20))
+    a = [x + (3.0 if i % 5 < 3 else -3.0) + RNG.normal(0, 0.1) for i, x in enumerate(b)]
+    v = judge(claim(), reshaped(table({"s1": (a, b)}), folds=5))
+    assert v.value == pytest.approx(0.6, abs=0.1)
+    assert width(v.ci) > 1.5 * width(v.ci_meshes) and v.verdict == "inconclusive"
+
+
+def test_seeds_that_agree_give_the_one_seed_interval_and_seeds_that_disagree_widen_it():
+    t = table({"s1": noisy(1.0), "s2": noisy(0.8)})
+    one = judge(claim(), reshaped(t, folds=5))
+    agree = judge(claim(), reshaped(t, folds=5, seeds=2))
+    assert agree.seeds == 2 and agree.ci == pytest.approx(one.ci) and agree.value == pytest.approx(one.value)
+    apart = judge(claim(), reshaped(t, folds=5, seeds=2, shift=3.0))
+    assert apart.value == pytest.approx(one.value + 1.5)  # the mean over seeds
+    assert width(apart.ci) > 2 * width(one.ci)  # one seed's +3 or the other's: a draw of seeds moves it 1.5
 
 
 def test_differences_centred_on_zero_are_inconclusive():

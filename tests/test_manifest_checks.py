@@ -18,7 +18,7 @@ from meshseg.reproduce import reproduce
 SYNTH = REPO / "experiments/synthetic.yaml"
 KNOWN = {
     "manifest": "name, title, source, note, compared_with, overrides, columns, paired, curves, groups, total",
-    "column": "key, label, overrides, predictions, sets",
+    "column": "key, label, overrides, predictions, sets, seeds",
     "group": "name, overrides, average, published_average, also_average, sets",
     "set": "name, category, published, test_meshes",
 }

@@ -109,7 +109,7 @@ def test_the_refinement_block_is_refined_minus_raw_mesh_by_mesh():
     s1 = Cell(COL, None, value=85.0, ci=(80.0, 90.0), n_meshes=2, folds=1)
     s2 = Cell(COL, None, value=70.0, ci=(70.0, 70.0), n_meshes=1, folds=1)
     meshes = pd.DataFrame(
-        {"group": "g", "row": ["s1", "s1", "s2"], "column": "a", "mesh": ["1", "2", "3"]}
+        {"group": "g", "row": ["s1", "s1", "s2"], "column": "a", "fold": [0, 1, 0], "mesh": ["1", "2", "3"]}
         | {"acc": [90.0, 80.0, 70.0], "acc_raw": [88.0, 80.0, 71.0]}  # gains 2, 0 and -1
     )
     manifest = type(

@@ -37,6 +37,51 @@ def bootstrap_ci(samples: list[np.ndarray], n_boot: int, level: float, rng: np.r
     return float(lo), float(hi)
 
 
+def nested_stats(
+    folds: list[tuple[np.ndarray, np.ndarray | None]], n_boot: int, rng: np.random.Generator
+) -> np.ndarray:
+    """Bootstrap replicates of one set's mean a − b (or a, where b is None) resampling what varies between
+    runs: each column's training seeds (rows of its (seeds, meshes) arrays, drawn apart for a and b), then
+    whole folds, then the test meshes within each drawn fold. A replicate is the mean over every drawn mesh of
+    (mean of a over a's drawn seeds − mean of b over b's), so with one seed and one mesh a fold it is the
+    mesh-level bootstrap, and seeds that agree leave it as it is (the draws use their own streams)."""
+    seed_rng, fold_rng, mesh_rng = rng.spawn(3)
+
+    def seed_weights(s: int) -> np.ndarray:  # (n_boot, s): how often each seed is drawn, over s
+        draws = seed_rng.integers(0, s, size=(n_boot, s))
+        return np.stack([(draws == i).sum(axis=1) for i in range(s)], axis=1) / s
+
+    wa = seed_weights(folds[0][0].shape[0])
+    b0 = folds[0][1]
+    wb = None if b0 is None else seed_weights(b0.shape[0])
+    per_fold = [wa @ a - (0 if b is None else wb @ b) for a, b in folds]  # (n_boot, meshes) each
+    picks = fold_rng.integers(0, len(folds), size=(n_boot, len(folds)))
+    total, count = np.zeros(n_boot), np.zeros(n_boot)
+    for j in range(len(folds)):
+        for f, d in enumerate(per_fold):
+            rows = np.flatnonzero(picks[:, j] == f)
+            m = d.shape[1]
+            draw = mesh_rng.integers(0, m, size=(len(rows), m))
+            total[rows] += np.take_along_axis(d[rows], draw, axis=1).sum(axis=1)
+            count[rows] += m
+    return total / count
+
+
+def nested_interval(
+    sets: list[list[tuple[np.ndarray, np.ndarray | None]]], n_boot: int, level: float, rng: np.random.Generator
+) -> tuple[float, float]:
+    """Percentile interval of the mean over sets of each set's mean a − b, each set resampled by nested_stats
+    on its own (its folds: (a, b) arrays of shape (seeds, test meshes of the fold)). Where every fold holds one
+    test mesh and every column one seed (leave-one-out, one seed), that is the mesh-level bootstrap, and the
+    interval is bootstrap_ci's with the same generator, to the last digit."""
+    if all(x is None or x.shape == (1, 1) for folds in sets for pair in folds for x in pair):
+        flat = [np.array([a[0, 0] - (0 if b is None else b[0, 0]) for a, b in folds]) for folds in sets]
+        return bootstrap_ci(flat, n_boot, level, rng)
+    stats = np.mean([nested_stats(folds, n_boot, rng) for folds in sets], axis=0)
+    lo, hi = np.quantile(stats, [(1 - level) / 2, (1 + level) / 2])
+    return float(lo), float(hi)
+
+
 def cell_rng(seed: int, *identity: str) -> np.random.Generator:
     """The bootstrap generator of one cell: the report seed and the cell's identity (e.g. row kind, group,
     row label, column key) hashed into 32-bit words, so that no other cell's presence changes it."""
@@ -55,6 +100,10 @@ class Bootstrap:
     def interval(self, samples: list[np.ndarray], *identity: str) -> tuple[float, float]:
         return bootstrap_ci(samples, self.n_boot, self.level, cell_rng(self.seed, *identity))
 
+    def nested(self, sets: list[list[tuple[np.ndarray, np.ndarray | None]]], *identity: str) -> tuple[float, float]:
+        """nested_interval (seeds, folds, then meshes resampled) with this bootstrap's settings."""
+        return nested_interval(sets, self.n_boot, self.level, cell_rng(self.seed, *identity))
+
 
 # --- per-mesh values of one cell ---------------------------------------------------------------------------
 
@@ -64,33 +113,76 @@ def cell_meshes(meshes: pd.DataFrame, row: Row, key: str) -> pd.DataFrame:
     return meshes[(meshes["group"] == row.group) & (meshes["row"] == row.label) & (meshes["column"] == key)]
 
 
-def scored(meshes: pd.DataFrame, row: Row, key: str, metric: str) -> dict[str, float]:
-    """{mesh id: accuracy in %} of the cell's finished folds, complete or not."""
+def mesh_means(own: pd.DataFrame, metric: str) -> np.ndarray:
+    """Per test mesh of one cell's rows (`own`), its accuracy averaged over the training seeds it was tested
+    at, in fold order (first appearance): with one seed, the rows' own values."""
+    return own.groupby("mesh", sort=False)[metric].mean().to_numpy(dtype=np.float64)
+
+
+def _by_mesh(meshes: pd.DataFrame, row: Row, key: str, metric: str) -> pd.Series:
     own = cell_meshes(meshes, row, key)
-    return dict(zip(own["mesh"], own[metric].to_numpy()))
+    return own.groupby("mesh", sort=False)[metric].mean()
+
+
+def scored(meshes: pd.DataFrame, row: Row, key: str, metric: str) -> dict[str, float]:
+    """{mesh id: accuracy in % (mean over its seeds)} of the cell's finished folds, complete or not."""
+    return _by_mesh(meshes, row, key, metric).to_dict()
 
 
 def _pairs(meshes: pd.DataFrame, row: Row, key: str, metric: str) -> list[tuple[str, float]]:
-    own = cell_meshes(meshes, row, key)
-    return list(zip(own["mesh"], own[metric].to_numpy()))
+    return list(_by_mesh(meshes, row, key, metric).items())
 
 
 def accuracies(meshes: pd.DataFrame, row: Row, key: str, metric: str) -> np.ndarray:
-    """The cell's per-mesh accuracies (%), in fold order (a complete cell's sample)."""
-    return np.array(cell_meshes(meshes, row, key)[metric].to_numpy(), dtype=np.float64)
+    """The cell's per-mesh accuracies (%; each the mean over its seeds), in fold order (a complete cell's sample)."""
+    return mesh_means(cell_meshes(meshes, row, key), metric)
 
 
 def gains(meshes: pd.DataFrame, row: Row, key: str) -> np.ndarray | None:
-    """Refined minus raw accuracy per test mesh; None where the column has no raw accuracies (scored from disk)."""
+    """Refined minus raw accuracy per test mesh (mean over its seeds); None where the column has no raw
+    accuracies (scored from disk)."""
     own = cell_meshes(meshes, row, key)
-    raw = np.array(own["acc_raw"].to_numpy(), dtype=np.float64)
-    return None if np.isnan(raw).any() else np.array(own["acc"].to_numpy(), dtype=np.float64) - raw
+    if own["acc_raw"].isna().any():
+        return None
+    return mesh_means(own.assign(gain=own["acc"] - own["acc_raw"]), "gain")
 
 
 def paired_differences(meshes: pd.DataFrame, row: Row, a: str, b: str, metric: str) -> np.ndarray:
     """a - b on each test mesh both cells scored, in a's order."""
     acc_b = scored(meshes, row, b, metric)
     return np.array([x - acc_b[m] for m, x in _pairs(meshes, row, a, metric) if m in acc_b])
+
+
+def fold_arrays(meshes: pd.DataFrame, row: Row, key: str, metric: str) -> dict[int, pd.DataFrame]:
+    """The cell's per-mesh values by fold, each a (seeds x test meshes) frame (rows: the training seeds its
+    runs have, `seed` 0 where the frame names none; columns: mesh ids). `metric` "gain" is refined minus raw."""
+    own = cell_meshes(meshes, row, key)
+    values = own["acc"] - own["acc_raw"] if metric == "gain" else own[metric]
+    seeds = own["seed"] if "seed" in own else pd.Series(0, index=own.index)
+    frame = pd.DataFrame({"fold": own["fold"], "seed": seeds, "mesh": own["mesh"], "v": values})
+    return {
+        int(f): part.pivot_table(index="seed", columns="mesh", values="v", aggfunc="mean").sort_index(axis=1)
+        for f, part in frame.groupby("fold", sort=True)
+    }
+
+
+def nested_units(meshes: pd.DataFrame, row: Row, a: str, b: str | None, metric: str, offset: float = 0.0):
+    """One set's folds for nested_stats: per fold (a's (seeds, meshes) array, b's or None) over the test meshes
+    both columns scored in it (b None: a alone, less `offset`, e.g. a published number; metric "gain": the
+    refinement's own gain in column a)."""
+    fa = fold_arrays(meshes, row, a, metric)
+    fb = fold_arrays(meshes, row, b, metric) if b is not None else {}
+    out = []
+    for f, xa in fa.items():
+        if b is None:
+            out.append((xa.to_numpy() - offset, None))
+            continue
+        if f not in fb:
+            continue
+        both = [m for m in xa.columns if m in fb[f].columns]
+        if both:
+            out.append((xa[both].to_numpy(), fb[f][both].to_numpy()))
+    return out
 
 
 # --- cells ---------------------------------------------------------------------------------------------------
@@ -121,7 +213,12 @@ def average_cell(
     cell = Cell(column, published, n_meshes=sum(m.n_meshes for m in runs), budget=members[0].budget, members=runs)
     if cell.status != "ok":
         return cell
-    return replace(cell, value=float(np.mean([m.value for m in members])), ci=boot.interval(list(samples), *identity))
+    value, ci = float(np.mean([m.value for m in members])), boot.interval(list(samples), *identity)
+    per_seed = {len(m.seed_values) for m in members}
+    seeds = (
+        np.mean([m.seed_values for m in members], axis=0) if per_seed == {max(per_seed)} and max(per_seed) > 1 else ()
+    )
+    return replace(cell, value=value, ci=ci, seed_values=tuple(float(v) for v in seeds))
 
 
 def average_row(table: Table, label: str, kind: str, members: Sequence[Row], published, boot: Bootstrap) -> Row:
@@ -162,7 +259,8 @@ def compare(table: Table, a: str, b: str, boot: Bootstrap) -> Paired:
         partial = ", ".join(
             f"{c.column.key} {c.folds - len(c.missing)} of {c.folds} folds" for c in (ca, cb) if c.missing
         )
-        return (d, partial) if len(d) else "no test mesh in common"
+        units = nested_units(table.meshes, row, a, b, table.metric)
+        return (d, units, partial) if len(d) else "no test mesh in common"
 
     rows = paired_rows(table, differences, ("paired", a, b), boot)
     return Paired(table.columns[ia], table.columns[ib], rows)
@@ -173,20 +271,21 @@ def refinement_gain(table: Table, key: str, boot: Bootstrap) -> tuple[PairedRow,
     mean with a paired bootstrap interval, per average row the mean over its sets."""
     j = [c.key for c in table.columns].index(key)
 
-    def differences(row: Row) -> np.ndarray | str:
+    def differences(row: Row) -> tuple | str:
         if row.cells[j].status != "ok":
             return row.cells[j].status
         d = gains(table.meshes, row, key)
-        return "no raw accuracies" if d is None else d
+        return "no raw accuracies" if d is None else (d, nested_units(table.meshes, row, key, None, "gain"), "")
 
     return paired_rows(table, differences, ("refinement", key), boot)
 
 
 def paired_rows(table: Table, differences, ident: tuple[str, ...], boot: Bootstrap) -> tuple[PairedRow, ...]:
-    """One PairedRow per table row from `differences(set row)` (per-mesh differences, with what makes them
-    partial, or why there are none; None leaves the set out of the comparison); an average row is the mean
-    over its sets compared, defined when every one of them has differences in full, and labelled with how
-    many of its sets those are when some were left out."""
+    """One PairedRow per table row from `differences(set row)` (per-mesh differences, their folds for the nested
+    interval and what makes them partial, or why there are none; None leaves the set out of the comparison);
+    an average row is the mean over its sets compared, defined when every one of them has differences in
+    full, and labelled with how many of its sets those are when some were left out. Intervals resample seeds,
+    folds, then meshes (nested_interval: under leave-one-out with one seed, the mesh bootstrap)."""
     out, diffs, compared = [], {}, set()
     for row in table.rows:
         identity = (*ident[:1], row.kind, row.group, row.label, *ident[1:])
@@ -211,18 +310,19 @@ def paired_rows(table: Table, differences, ident: tuple[str, ...], boot: Bootstr
         if isinstance(d, str):
             out.append(PairedRow(row.label, row.kind, 0, why=d))
             continue
-        d, partial = d if isinstance(d, tuple) else (d, "")
+        d, units, partial = d
         if not partial:
-            diffs[(row.group, row.label)] = d
+            diffs[(row.group, row.label)] = (d, units)
         out.append(
-            PairedRow(row.label, row.kind, len(d), float(d.mean()), boot.interval([d], *identity), partial=partial)
+            PairedRow(row.label, row.kind, len(d), float(d.mean()), boot.nested([units], *identity), partial=partial)
         )
     return tuple(out)
 
 
 def _paired_average(label: str, kind: str, ds: list, boot: Bootstrap, identity: tuple[str, ...]) -> PairedRow:
-    """The mean over sets of per-mesh differences (None: a set not compared in full), each set resampled on its own."""
+    """The mean over sets of per-mesh differences ((differences, folds) per set; None: a set not compared in
+    full), each set resampled on its own."""
     if any(d is None for d in ds) or not ds:
         return PairedRow(label, kind, 0, why="not every set compared")
-    value = float(np.mean([d.mean() for d in ds]))
-    return PairedRow(label, kind, sum(map(len, ds)), value, boot.interval(ds, *identity))
+    value = float(np.mean([d.mean() for d, _ in ds]))
+    return PairedRow(label, kind, sum(len(d) for d, _ in ds), value, boot.nested([u for _, u in ds], *identity))

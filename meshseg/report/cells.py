@@ -32,7 +32,10 @@ class Cell:
     ci: tuple[float, float] | None = None
     n_meshes: int = 0  # test meshes its value is over (an average: those of its sets)
     folds: int = 0  # folds the split has
-    missing: tuple[int, ...] = ()  # folds without a FINISHED run
+    missing: tuple[int, ...] = ()  # folds without a FINISHED run (at one of its seeds, or more)
+    missing_runs: tuple[tuple[int, int], ...] = ()  # a column with `seeds:`: the (seed, fold) runs missing
+    seeds: tuple[int, ...] = ()  # a column with `seeds:`: its training seeds
+    seed_values: tuple[float, ...] = ()  # with more than one seed: the cell's value at each (its runs at that seed)
     problem: str | None = None  # why no run can exist (dataset lacks the category, ...)
     budget: str | None = None
     overrides: tuple[str, ...] = ()  # what `meshseg.run` needs to make this cell's runs
@@ -56,6 +59,16 @@ class Cell:
         return "unavailable" if self.problem else "incomplete" if self.missing else "ok"
 
     @property
+    def seed_sd(self) -> float | None:
+        """The spread between training seeds: the sd of the per-seed values (None with fewer than two)."""
+        return float(np.std(self.seed_values, ddof=1)) if len(self.seed_values) > 1 else None
+
+    @property
+    def runs_missing(self) -> int:
+        """Fold runs still to make: every (seed, fold) of a column with seeds, else every fold."""
+        return len(self.missing_runs) or len(self.missing)
+
+    @property
     def delta(self) -> float | None:
         return None if self.value is None or self.published is None else self.value - self.published
 
@@ -63,6 +76,9 @@ class Cell:
         """An incomplete cell in a table: `— (done/folds)`, or `— (done/n sets)` for an average."""
         if self.members:
             return f"— ({sum(m.status == 'ok' for m in self.members)}/{len(self.members)} sets)"
+        if self.missing_runs:
+            runs = self.folds * len(self.seeds)
+            return f"— ({runs - len(self.missing_runs)}/{runs} runs)"
         return f"— ({self.folds - len(self.missing)}/{self.folds})"
 
     def why(self) -> str:
@@ -74,6 +90,8 @@ class Cell:
             return f"{n} of {len(self.members)} sets not complete"
         if self.problem:
             return self.problem
+        if self.missing_runs:
+            return f"{len(self.missing_runs)} of {self.folds * len(self.seeds)} fold runs missing (seeds {self.seeds})"
         return f"{len(self.missing)} of {self.folds} folds missing"
 
 
@@ -209,9 +227,9 @@ def progress(table: Table) -> Progress:
     return Progress(
         cells_done=len(cells) - len(todo),
         cells=len(cells),
-        runs_missing=sum(len(c.missing) for c in todo),
+        runs_missing=sum(c.runs_missing for c in todo),
         command=shlex.join(args),
-        seconds=sum(len(c.missing) * fold_time(c) for c in todo if c.column.label in medians),
+        seconds=sum(c.runs_missing * fold_time(c) for c in todo if c.column.label in medians),
         fold_seconds=medians,
         untimed=tuple(k for k in lacking if k not in medians),
         unavailable=sum(c.status == "unavailable" for c in run_cells),

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from meshseg.errors import ManifestError
-from meshseg.report.aggregate import Bootstrap, accuracies, gains, paired_differences
+from meshseg.report.aggregate import Bootstrap, accuracies, gains, nested_units, paired_differences
 from meshseg.report.cells import Cell, Table
 from meshseg.report.claims_file import Claim, ClaimsFile, TableSpec, load_claims
 
@@ -34,8 +34,9 @@ from meshseg.report.claims_file import Claim, ClaimsFile, TableSpec, load_claims
 class SetDiff:
     name: str
     value: float | None  # mean a - b over its test meshes, points
-    ci: tuple[float, float] | None
+    ci: tuple[float, float] | None  # resampling seeds, folds, then meshes (aggregate.nested_interval)
     n_meshes: int
+    ci_meshes: tuple[float, float] | None = None  # resampling the test meshes alone
 
 
 @dataclass
@@ -51,12 +52,25 @@ class Verdict:
     budget: str = ""  # the budget(s) of the evidence
     notes: list[str] = field(default_factory=list)
     budget_effect: str = ""  # the budget study's word: pending | moves it (which) | no effect ("": not asked)
+    #: the verdict the interval over test meshes alone gives (the rule before 2026-12-02), for comparison,
+    #: and how many training seeds the evidence has (the fewest of its columns)
+    ci_meshes: tuple[float, float] | None = None
+    verdict_meshes: str = ""
+    seeds: int = 0
 
     @property
     def reproduced_text(self) -> str:
         if self.value is None:
             return "—"
         return f"{self.value:+.2f} [{self.ci[0]:+.2f}, {self.ci[1]:+.2f}]"
+
+    @property
+    def meshes_text(self) -> str:
+        """The interval over test meshes alone, and the verdict it gives where that is another."""
+        if self.ci_meshes is None:
+            return "—"
+        other = "" if self.verdict_meshes == self.verdict else f": {self.verdict_meshes}"
+        return f"[{self.ci_meshes[0]:+.2f}, {self.ci_meshes[1]:+.2f}]{other}"
 
     @property
     def verdict_text(self) -> str:
@@ -132,6 +146,21 @@ def _identity(table: Table, claim: Claim, row) -> tuple[str, ...]:
     return ("paired", row.kind, row.group, row.label, claim.a, claim.b)
 
 
+def _units(table: Table, rows, claim: Claim, ib: int | None) -> list[list]:
+    """Per set row, the claim's folds for the nested interval (aggregate.nested_units)."""
+    out = []
+    for r in rows:
+        if claim.test == "refinement":
+            out.append(nested_units(table.meshes, r, claim.a, None, "gain"))
+            continue
+        cb = r.cells[ib]
+        if cb.column.overrides is None:  # published only: a's accuracy against the paper's number
+            out.append(nested_units(table.meshes, r, claim.a, None, table.metric, cb.published))
+            continue
+        out.append(nested_units(table.meshes, r, claim.a, claim.b, table.metric))
+    return out
+
+
 def _differences(table: Table, rows, claim: Claim, ib: int | None) -> list[np.ndarray]:
     """Per set row, the per-mesh differences the claim is judged on (every cell complete)."""
     out = []
@@ -176,19 +205,24 @@ def judge(claim: Claim, table: Table, n_boot: int = 2000, seed: int = 0) -> Verd
     if not rows or any(c.status == "unavailable" for c in cells):
         return v
     if any(c.status == "incomplete" for c in cells):
-        v.verdict, v.missing_runs = "not yet run", sum(len(c.missing) for c in cells if c.status == "incomplete")
+        v.verdict, v.missing_runs = "not yet run", sum(c.runs_missing for c in cells if c.status == "incomplete")
         return v
     if claim.test == "refinement" and any(gains(table.meshes, r, claim.a) is None for r in rows):
         v.verdict = "no data"
         v.notes.append("no raw accuracies logged")
         return v
     boot = Bootstrap(n_boot, table.level, seed)
-    diffs = _differences(table, rows, claim, ib)
-    for r, d in zip(rows, diffs):
-        v.sets.append(SetDiff(r.label, float(d.mean()), boot.interval([d], *_identity(table, claim, r)), len(d)))
+    diffs, units = _differences(table, rows, claim, ib), _units(table, rows, claim, ib)
+    for r, d, u in zip(rows, diffs, units):
+        ident = _identity(table, claim, r)
+        v.sets.append(SetDiff(r.label, float(d.mean()), boot.nested([u], *ident), len(d), boot.interval([d], *ident)))
     v.value = float(np.mean([d.mean() for d in diffs]))
-    v.ci = boot.interval(diffs, *_identity(table, claim, None))
+    v.ci = boot.nested(units, *_identity(table, claim, None))
     v.verdict, v.against = decide(claim.test, v.ci, v.sets, claim.margin, claim.min_share)
+    v.ci_meshes = boot.interval(diffs, *_identity(table, claim, None))
+    mesh_sets = [SetDiff(s.name, s.value, s.ci_meshes, s.n_meshes) for s in v.sets]
+    v.verdict_meshes = decide(claim.test, v.ci_meshes, mesh_sets, claim.margin, claim.min_share)[0]
+    v.seeds = min(x.shape[0] for u in units for pair in u for x in pair if x is not None)
     return v
 
 
@@ -312,14 +346,15 @@ def _num(x: float | None, signed: bool = True) -> str:
 def summary_table(report: ClaimsReport) -> str:
     """The one-line-per-claim Markdown table (the README's "Does the paper reproduce?")."""
     lines = [
-        "| # | claim (paper) | published | reproduced [95 % CI] | verdict | budget |",
-        "|---|---|---|---|---|---|",
+        "| # | claim (paper) | published | reproduced [95 % CI] | verdict | seeds | meshes alone | budget |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for v in report.verdicts:
         c = v.claim
+        budget = (v.budget or "—") + (f"; budget study: {v.budget_effect}" if v.budget_effect else "")
         lines.append(
             f"| {c.id} | {c.text} ({c.source}) | {_num(v.published)} | {v.reproduced_text} | "
-            f"{v.verdict_text} | {v.budget or '—'}{f'; budget study: {v.budget_effect}' if v.budget_effect else ''} |"
+            f"{v.verdict_text} | {v.seeds or '—'} | {v.meshes_text} | {budget} |"
         )
     return "\n".join(lines)
 
@@ -334,7 +369,9 @@ def markdown(report: ClaimsReport) -> str:
     for v in report.verdicts:
         out.append(
             f"**{v.claim.id}** ({v.claim.table}: {v.claim.a}{' − ' + v.claim.b if v.claim.b else ''}, "
-            f"test {v.claim.test}): {v.verdict_text}" + "".join(f". {n}" for n in v.notes)
+            f"test {v.claim.test}): {v.verdict_text}"
+            + (f"; {v.seeds} seed(s); over test meshes alone {v.meshes_text}" if v.ci_meshes else "")
+            + "".join(f". {n}" for n in v.notes)
         )
         if v.sets:
             out.append("")
@@ -358,7 +395,8 @@ def csv_text(report: ClaimsReport) -> str:
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(["id", "claim", "source", "table", "a", "b", "test", "published", "reproduced", "ci_low", "ci_high",
-                "verdict", "against", "missing_runs", "budget", "budget_effect", "notes"])  # fmt: skip
+                "verdict", "against", "missing_runs", "budget", "budget_effect", "notes",
+                "meshes_ci_low", "meshes_ci_high", "verdict_meshes", "seeds"])  # fmt: skip
     for v in report.verdicts:
         c = v.claim
         w.writerow([
@@ -367,6 +405,8 @@ def csv_text(report: ClaimsReport) -> str:
             "" if v.value is None else f"{v.value:.4f}",
             "" if v.ci is None else f"{v.ci[0]:.4f}", "" if v.ci is None else f"{v.ci[1]:.4f}",
             v.verdict, ";".join(v.against), v.missing_runs, v.budget, v.budget_effect, " ".join(v.notes),
+            "" if v.ci_meshes is None else f"{v.ci_meshes[0]:.4f}",
+            "" if v.ci_meshes is None else f"{v.ci_meshes[1]:.4f}", v.verdict_meshes, v.seeds or "",
         ])  # fmt: skip
     return buf.getvalue()
 

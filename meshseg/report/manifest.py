@@ -23,7 +23,7 @@ MANIFEST_KEYS = (
     *("name", "title", "source", "note", "compared_with", "overrides"),
     *("columns", "paired", "curves", "groups", "total"),
 )
-COLUMN_KEYS = ("key", "label", "overrides", "predictions", "sets")
+COLUMN_KEYS = ("key", "label", "overrides", "predictions", "sets", "seeds")
 GROUP_KEYS = ("name", "overrides", "average", "published_average", "also_average", "sets")
 SET_KEYS = ("name", "category", "published", "test_meshes")
 
@@ -43,6 +43,7 @@ class Column:
     overrides: tuple[str, ...] | None  # None: the paper's number only, no runs (e.g. ShapePFCN)
     predictions: Predictions | None = None  # scored from disk instead of from runs
     sets: tuple[str, ...] | None = None  # names of the only sets it has runs for (None: all); its other cells are n/a
+    seeds: tuple[int, ...] | None = None  # training seeds each fold is run at (None: the run config's one seed)
 
     def runs_on(self, set_name: str) -> bool:
         """Whether the (column, set) cell is part of the study."""
@@ -187,7 +188,20 @@ def _column(value, i: int) -> Column:
     pred = _predictions(value.get("predictions"), value["key"])
     if pred is not None:
         over = over or ()  # scored from disk, yet a run config says which dataset and split
-    return Column(str(value["key"]), str(value["label"]), over, pred)
+    seeds = _seeds(value.get("seeds"), value["key"], over is None or pred is not None)
+    return Column(str(value["key"]), str(value["label"]), over, pred, seeds=seeds)
+
+
+def _seeds(value, key: str, no_runs: bool) -> tuple[int, ...] | None:
+    """A column's `seeds:`: distinct whole numbers >= 0, on a column of runs."""
+    if value is None:
+        return None
+    if no_runs:
+        raise _Invalid(f"column {key}: seeds: only a column of runs has training seeds")
+    ok = isinstance(value, list) and value and all(isinstance(x, int) and not isinstance(x, bool) for x in value)
+    if not ok or min(value) < 0 or len(set(value)) != len(value):
+        raise _Invalid(f"column {key}: seeds: give a list of distinct whole numbers >= 0, not {value!r}")
+    return tuple(value)
 
 
 def _columns(value) -> tuple[Column, ...]:

@@ -21,7 +21,7 @@ from omegaconf import OmegaConf
 
 from meshseg.config import run_config
 from meshseg.errors import ConfigError, ManifestError, MeshsegError
-from meshseg.report.aggregate import Bootstrap, average_row, compare, refinement_gain, set_cell
+from meshseg.report.aggregate import Bootstrap, average_row, compare, mesh_means, refinement_gain, set_cell
 from meshseg.report.cells import Cell, Row, Table, no_meshes
 from meshseg.report.manifest import Column, Group, Manifest, Set
 from meshseg.report.runs import RUN_COLUMNS, mesh_table, records_mesh_table
@@ -50,7 +50,8 @@ class CellPlan:
     cell: Cell  # folds, problem, budget, overrides, category (no value yet)
     run: ColumnRun | None = None  # None: a published-only column, or n/a
     folds: tuple = ()  # the split's folds (meshseg.data.splits.Fold)
-    hashes: tuple[str, ...] = ()  # the config hash of each fold's run (run columns)
+    hashes: tuple[str, ...] = ()  # the config hash of each fold's run (run columns), seed by seed
+    seeds: tuple[int, ...] = ()  # the training seed of each of those runs
     scores: tuple[dict, ...] = ()  # the per-mesh rows of a predictions column, scored from disk
 
 
@@ -72,8 +73,14 @@ class _Planner:
         self.datasets: dict[str, object] = {}
         self.budget_text: dict[str, str] = {}
 
-    def column_run(self, group: Group, column: Column) -> ColumnRun:
-        over = (*self.manifest.cell_overrides(group, column), *self.overrides)
+    def column_run(self, group: Group, column: Column, seed: int | None = None) -> ColumnRun:
+        """The column's run config in the group (at training seed `seed`: the column's `seeds:` win over the
+        command line's, as in the sweeps reproduce launches)."""
+        over = (
+            *self.manifest.cell_overrides(group, column),
+            *self.overrides,
+            *(() if seed is None else (f"seed={seed}",)),
+        )
         try:
             cfg = _run_config(over)
         except ConfigError as e:
@@ -115,10 +122,10 @@ class _Planner:
         for j, column in enumerate(self.manifest.columns):
             if column.overrides is None:
                 continue
-            run = self.column_run(group, column)
+            runs = [self.column_run(group, column, seed) for seed in column.seeds or (None,)]
             for s, row in zip(sets, grid):
                 if not row[j].cell.outside:
-                    row[j] = _plan(row[j], run, s.category)
+                    row[j] = _plan(row[j], runs, s.category)
         return grid
 
     @staticmethod
@@ -130,12 +137,15 @@ class _Planner:
         return CellPlan(group.name, s.name, Cell(column, None, outside=True))
 
 
-def _plan(blank: CellPlan, run: ColumnRun, category: str) -> CellPlan:
-    """The cell's category, folds and the config hash of each fold's run; or why the cell cannot have runs."""
+def _plan(blank: CellPlan, runs: list[ColumnRun], category: str) -> CellPlan:
+    """The cell's category, folds and the config hash of each fold's run at each of the column's seeds (`runs`:
+    its run config at each); or why the cell cannot have runs."""
     from meshseg.data.splits import folds_for
     from meshseg.tracking import fold_identity
 
-    cell = replace(blank.cell, budget=run.budget, overrides=run.overrides)
+    run = runs[0]
+    overrides = run.overrides if blank.cell.column.seeds is None else run.overrides[:-1]  # reproduce adds each seed
+    cell = replace(blank.cell, budget=run.budget, overrides=overrides)
     if isinstance(run.dataset, str):
         return replace(blank, cell=replace(cell, problem=run.dataset), run=run)
     name = _match_category(run.dataset, category)
@@ -151,8 +161,9 @@ def _plan(blank: CellPlan, run: ColumnRun, category: str) -> CellPlan:
     cell = replace(cell, folds=len(folds))
     if cell.column.predictions is not None:
         return _fill_predictions(replace(blank, cell=cell, run=run, folds=folds))
-    hashes = tuple(fold_identity(run.resolved, name, f, run.dataset.data_hash)[1] for f in folds)
-    return replace(blank, cell=cell, run=run, folds=folds, hashes=hashes)
+    hashes = tuple(fold_identity(r.resolved, name, f, run.dataset.data_hash)[1] for r in runs for f in folds)
+    seeds = tuple(int(r.resolved["seed"]) for r in runs for _ in folds)
+    return replace(blank, cell=cell, run=run, folds=folds, hashes=hashes, seeds=seeds)
 
 
 def _fill_predictions(plan: CellPlan) -> CellPlan:
@@ -165,7 +176,7 @@ def _fill_predictions(plan: CellPlan) -> CellPlan:
     scored = score(cell.column.predictions, run.dataset, cell.category, [m for _, m in tests], run.cache_dir)
     keys = {"group": plan.group, "row": plan.row, "column": cell.column.key, "category": cell.category}
     rows = tuple(
-        {**keys, "fold": fold, "mesh": m, "acc": float(a), "acc_raw": float("nan")}
+        {**keys, "fold": fold, "seed": 0, "mesh": m, "acc": float(a), "acc_raw": float("nan")}
         for (fold, _), (m, a) in zip(tests, scored)
     )
     return replace(plan, scores=rows)
@@ -182,14 +193,15 @@ def _meshes(plans: list[CellPlan], read) -> pd.DataFrame:
                 "column": p.cell.column.key,
                 "category": p.cell.category,
                 "fold": f.index,
+                "seed": seed,
                 "config_hash": h,
                 "uri": p.run.store[0],
                 "experiment": p.run.store[1],
             }
             for p in plans
-            for f, h in zip(p.folds, p.hashes)
+            for f, seed, h in zip(p.folds * (len(p.hashes) // max(len(p.folds), 1)), p.seeds, p.hashes)
         ],
-        columns=["group", "row", "column", "category", "fold", "config_hash", "uri", "experiment"],
+        columns=["group", "row", "column", "category", "fold", "seed", "config_hash", "uri", "experiment"],
     )
     parts = read(wanted)
     parts += [pd.DataFrame(list(p.scores)) for p in plans if p.scores]
@@ -206,8 +218,19 @@ def _from_stores(wanted: pd.DataFrame) -> list[pd.DataFrame]:
     ]
 
 
-#: the per-mesh frame's columns: the cell's keys, its fold, the run's identity, time and counts, the mesh's scores
-MESH_COLUMNS = ["group", "row", "column", "category", "fold", *RUN_COLUMNS[:4], "mesh", *FoldRecord.MESH_METRICS]
+#: the per-mesh frame's columns: the cell's keys, its fold and training seed, the run's identity, time and counts,
+#: the mesh's scores
+MESH_COLUMNS = [
+    "group",
+    "row",
+    "column",
+    "category",
+    "fold",
+    "seed",
+    *RUN_COLUMNS[:4],
+    "mesh",
+    *FoldRecord.MESH_METRICS,
+]
 
 
 def _cell(plan: CellPlan, meshes: pd.DataFrame, metric: str, boot: Bootstrap) -> Cell:
@@ -217,16 +240,23 @@ def _cell(plan: CellPlan, meshes: pd.DataFrame, metric: str, boot: Bootstrap) ->
     cell = plan.cell
     if plan.hashes:
         runs = own.drop_duplicates("run_id")
-        found = set(runs["fold"])
+        found = set(zip(runs["seed"], runs["fold"]))
+        lacking = tuple(
+            (s, f.index) for s in dict.fromkeys(plan.seeds) for f in plan.folds if (s, f.index) not in found
+        )
         cell = replace(
             cell,
-            missing=tuple(f.index for f in plan.folds if f.index not in found),
+            missing=tuple(sorted({f for _, f in lacking})),
+            missing_runs=lacking if cell.column.seeds is not None else (),
+            seeds=cell.column.seeds or (),
             config_hashes=tuple(runs["config_hash"]),
             seconds=tuple(float(s) for s in runs["seconds"] if not np.isnan(s)),
             counts=tuple(runs["counts"]),
         )
-    sample = np.array(own[metric].to_numpy(), dtype=np.float64)
-    return set_cell(cell, sample, boot, ("set", plan.group, plan.row, cell.column.key))
+    cell = set_cell(cell, mesh_means(own, metric), boot, ("set", plan.group, plan.row, cell.column.key))
+    if cell.status == "ok" and len(cell.seeds) > 1:
+        cell = replace(cell, seed_values=tuple(float(v) for v in own.groupby("seed", sort=True)[metric].mean()))
+    return cell
 
 
 def check_request(manifest: Manifest, metric: str, sets, paired) -> None:

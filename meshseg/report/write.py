@@ -70,9 +70,12 @@ def header_lines(table: Table) -> list[str]:
 
 
 def _md_cell(cell: Cell) -> str:
+    ours = _ours(cell)
+    if cell.status == "ok" and cell.seed_sd is not None:  # a mean over seeds: the spread between them
+        ours += f" sd {cell.seed_sd:.2f} over {len(cell.seed_values)} seeds"
     if cell.published is None:
-        return _ours(cell)
-    return f"{_ours(cell)} / {cell.published:.2f}" + ("" if cell.delta is None else f" ({cell.delta:+.2f})")
+        return ours
+    return f"{ours} / {cell.published:.2f}" + ("" if cell.delta is None else f" ({cell.delta:+.2f})")
 
 
 def markdown(table: Table) -> str:
@@ -94,7 +97,8 @@ def markdown(table: Table) -> str:
         out += [
             "",
             f"**Paired comparison: {p.a.label} − {p.b.label}** (mean per-mesh difference in points over the test "
-            f"meshes both scored, [{100 * table.level:.0f} % paired bootstrap interval]; averages: mean over sets)",
+            f"meshes both scored, [{100 * table.level:.0f} % paired bootstrap interval resampling seeds, folds, then "
+            "meshes]; averages: mean over sets)",
             "",
             "| Set | Δ | meshes |",
             "|---|---|---|",
@@ -242,6 +246,8 @@ def csv_text(table: Table) -> str:
             "why",
             "category",
             "config_hashes",
+            "seeds",
+            "seed_values",
         ]
     )
     f = lambda v: "" if v is None else f"{v:.4f}"
@@ -267,6 +273,8 @@ def csv_text(table: Table) -> str:
                     c.why() if c.status in ("incomplete", "unavailable", "n/a") else "",
                     c.category or "",
                     " ".join(c.config_hashes),
+                    " ".join(map(str, c.seeds)),
+                    " ".join(f"{v:.4f}" for v in c.seed_values),
                 ]
             )
     return buf.getvalue()
