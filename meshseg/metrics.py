@@ -19,6 +19,12 @@ def area_weighted_accuracy(pred: np.ndarray, gt: np.ndarray, areas: np.ndarray) 
     return float(areas[pred == gt].sum() / total)
 
 
+def area_accuracy(mesh, labels: np.ndarray) -> float:
+    """The accuracy of per-face `labels` on a mesh with ground truth (labels, face_areas): what refine.search
+    scores its grid points by."""
+    return area_weighted_accuracy(labels, mesh.labels, mesh.face_areas)
+
+
 def confusion_matrix(pred: np.ndarray, gt: np.ndarray, n_classes: int, weights: np.ndarray | None = None) -> np.ndarray:
     """C[i, j] = weight (face count, or area if `weights` are areas) with ground truth i predicted j."""
     pred, gt = np.asarray(pred, np.int64), np.asarray(gt, np.int64)

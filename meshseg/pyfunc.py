@@ -140,9 +140,18 @@ def requirements() -> tuple[str, ...]:
     return tuple(out)
 
 
-def log_fold_model(tracker, run_id: str, model: FoldModel, cache_dir: str) -> str:
-    """`model` as run `run_id`'s MLflow logged model FoldRecord.MODEL (`tracker`: a meshseg.tracking.Tracker); its
-    id. `cache_dir`: the fold's feature cache, where the input example's features are kept."""
+#: the run tags a fold's saved model carries along (its model.yaml says where it came from)
+ABOUT_MODEL = ("dataset", "category", "fold", "model", "branches", "features", "budget", "config_hash", "git_sha")
+
+
+def log_fold_model(tracker, run_id: str, job, preds, refine_settings: dict) -> str:
+    """The fold's model (meshseg.predict.FoldModel: `job`'s config, the fitted `preds` and the refinement settings
+    it chose) as run `run_id`'s MLflow logged model FoldRecord.MODEL (`tracker`: a meshseg.tracking.Tracker); its
+    id. The input example's features are kept in the fold's feature cache."""
+    about = {"run_id": run_id, **{k: job.tags[k] for k in ABOUT_MODEL}}
+    label_names = job.dataset.label_names(job.key.category)
+    model = FoldModel.of_fold(job.config, preds, label_names, about, refine_settings)
+    cache_dir = job.cache_dir
 
     def save(model_id: str) -> None:
         os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # MLflow's check downloads the model

@@ -17,7 +17,6 @@ import logging
 import shutil
 import sys
 import time
-from typing import TYPE_CHECKING
 
 import hydra
 import numpy as np
@@ -31,24 +30,13 @@ from meshseg.signals import terminate_interrupts
 from meshseg.sweep import in_sweep, job_done, job_files, job_overrides, job_progress, sweep_tag
 from meshseg.timing import Timings
 
-if TYPE_CHECKING:
-    from meshseg.refine import Refinement
-    from meshseg.refine.search import SearchResult
-    from meshseg.tracking import Tracker
-    from meshseg.training.data import FeatureSource
-    from meshseg.training.fit import FoldPredictions
-
 log = logging.getLogger("meshseg.run")
-
-#: the run tags a fold's saved model carries along (its model.yaml says where it came from)
-ABOUT_MODEL = ("dataset", "category", "fold", "model", "branches", "features", "budget", "config_hash", "git_sha")
 
 
 def run(cfg: DictConfig) -> FoldOutcome:
     """One fold: resolve -> features -> fit -> predict -> refine -> score -> record, as one MLflow run. A fold
     whose config already has a FINISHED run (or a live one) is skipped; its run ends FINISHED, FAILED or KILLED."""
-    from meshseg.metrics import mesh_scores
-    from meshseg.predict import FoldModel
+    from meshseg.metrics import area_accuracy, mesh_scores
     from meshseg.pyfunc import log_fold_model
     from meshseg.tracking import FoldRecord, Lease, Tracker, system_tags
     from meshseg.training.data import FeatureSource
@@ -102,18 +90,12 @@ def run(cfg: DictConfig) -> FoldOutcome:
                 logger=tracker.lightning_logger(run_id),
                 checkpoint_dir=job.checkpoints and str(job.checkpoints),
             )
-            refine = job.refinement
-            preds = fit_predict(source, fitter, job.faces_per_mesh, job.workers, held_out=refine.search is not None)
+            preds = fit_predict(source, fitter, job.faces_per_mesh, job.workers)
             timings = Timings(preds.timings)
-            chosen, searched = {}, {}
-            if refine.search is not None and not preds.held_out:  # one class in the training faces: nothing held out
-                log.warning("refine.search: the model held no training mesh out; the configured settings stay")
-            elif refine.search is not None:  # its settings chosen on held-out training meshes, never a test mesh
-                with timings("refine_search"):
-                    found = search_refinement(refine, preds, source, tracker, run_id)
-                refine, chosen = found.chosen, found.settings
-                searched = {**{f"refine/{k}": float(v) for k, v in chosen.items()}, "refine/held_out_acc": found.score}
-            # refine: the refinement's own per-mesh inputs (e.g. AGD) come from the feature cache
+            # refine: its settings as configured, or chosen on held-out training meshes (refine.search); its
+            # per-mesh inputs (e.g. AGD) come from the feature cache
+            fitted = job.refinement.fitted(preds, source, area_accuracy, timings)
+            refine = fitted.refinement
             log.info("refining %d test meshes (%s)", len(preds.meshes), key.refine)
             with timings("refine"):
                 raw = [p.argmax(axis=1) for p in preds.probabilities]
@@ -129,7 +111,7 @@ def run(cfg: DictConfig) -> FoldOutcome:
                 * preds.counts["epochs"]
                 / preds.timings["train"],
                 "speed/predict_faces_per_s": preds.counts["test_faces"] / max(preds.timings.get("predict", 0.0), 1e-9),
-                **searched,
+                **fitted.metrics,
                 **fitter.fitted(),
             }
             # record (the timings last, so that they include the recording itself)
@@ -139,11 +121,10 @@ def run(cfg: DictConfig) -> FoldOutcome:
                 tracker.log_params(run_id, {f"n_{k}": v for k, v in preds.counts.items()})
                 arrays = FoldRecord.predictions(preds.meshes, preds.probabilities, raw, labels)
                 tracker.log_fold(run_id, OmegaConf.to_yaml(job.config), rows, arrays)
+                for name, data in fitted.records.items():
+                    tracker.log_json(run_id, name, data)
                 if t["log_model"]:  # an MLflow logged model (meshseg.pyfunc), which meshseg.predict reads too
-                    about = {"run_id": run_id, **{k: job.tags[k] for k in ABOUT_MODEL}}
-                    label_names = job.dataset.label_names(key.category)
-                    model = FoldModel.of_fold(job.config, preds, label_names, about, chosen)
-                    model_id = log_fold_model(tracker, run_id, model, job.cache_dir)
+                    model_id = log_fold_model(tracker, run_id, job, preds, fitted.settings)
             if renders := int(t["renders"] or 0):
                 log.info("rendering %d test meshes", min(renders, len(preds.meshes)))
                 with timings("pictures"):
@@ -165,38 +146,6 @@ def run(cfg: DictConfig) -> FoldOutcome:
     )
     job_done(time.perf_counter() - start)
     return FoldOutcome(key.category, key.fold, acc, False)
-
-
-def search_refinement(
-    refine: Refinement, preds: FoldPredictions, source: FeatureSource, tracker: Tracker, run_id: str
-) -> SearchResult:
-    """The search of `refine.search`'s grid (meshseg.refine.search.SearchResult): the grid point that scores
-    best (the paper's accuracy, mean over the meshes) on the training meshes the fitter held out, refined
-    from the probabilities of the model fitted without them. The whole grid's scores go to the run as
-    `refine_search.json`."""
-    from meshseg.metrics import area_weighted_accuracy
-    from meshseg.refine.search import choose
-    from meshseg.tracking import FoldRecord
-
-    meshes = preds.held_out
-    features = [source.groups(m, refine.needs) for m in meshes]
-    found = choose(
-        refine,
-        meshes,
-        preds.held_out_probabilities,
-        features,
-        lambda m, labels: area_weighted_accuracy(labels, m.labels, m.face_areas),
-    )
-    log.info(
-        "refine.search: %s chosen on %d held-out training meshes (%s): accuracy %.4f, best of %d grid points",
-        found.settings,
-        len(meshes),
-        ", ".join(m.id for m in meshes),
-        found.score,
-        len(found.table),
-    )
-    tracker.log_json(run_id, FoldRecord.REFINE_SEARCH, {"held_out": [m.id for m in meshes], "grid": found.table})
-    return found
 
 
 def setup_process(trainer: DictConfig) -> None:

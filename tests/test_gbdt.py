@@ -14,6 +14,7 @@ from test_run import compose_run
 from meshseg.data.splits import Fold
 from meshseg.errors import ConfigError
 from meshseg.models.gbdt import GradientBoostedTrees, inner_split
+from meshseg.timing import Timings
 from meshseg.training.context import TrainContext
 from meshseg.training.data import iter_test_inputs, mesh_groups
 from meshseg.training.fit import fit_predict
@@ -114,12 +115,15 @@ def test_held_out_meshes_are_predicted_by_the_trees_grown_without_them(source): 
     (preds, fitter), (same, plain) = fit(source), fit(source, ("0",), 0, "model.trees.refit=false")
     trees = fitter.trees_
     assert trees.inner_booster_ is not trees.booster_ and plain.trees_.inner_booster_ is plain.trees_.booster_
-    assert preds.held_out == []  # fit_predict predicts the held-out meshes only when asked (held_out=True)
+    assert fitter.held_out_  # fit_predict predicts only the test meshes; the held-out ones when a refinement asks
     fold_source = dataclasses.replace(
         source, fold=Fold(0, TRAIN, ("0",)), branches=compose_run(*SMALL, "model=gbdt").branches
     )
     _, X = next(iter_test_inputs(fold_source, [fitter.held_out_[0]], preds.standardiser))
     inner, refitted = fitter.predict_held_out(X), fitter.predict_proba(X)
+    meshes, probabilities = preds.predict_held_out(fold_source, Timings())  # what fit_refinement chooses on
+    assert [m.id for m in meshes] == list(fitter.held_out_)
+    np.testing.assert_array_equal(probabilities[0], inner)
     expected = trees.inner_booster_.predict(X.reshape(len(X), -1), num_iteration=trees.rounds_)
     np.testing.assert_allclose(inner[:, trees.classes_], expected, rtol=1e-6)
     assert not np.allclose(inner, refitted)
@@ -141,6 +145,7 @@ def test_refine_search_chooses_on_held_out_training_meshes_through_meshseg_run(t
     from meshseg.features.sets import FeatureSet
     from meshseg.predict import load_run_model
     from meshseg.refine import build_refinement
+    from meshseg.refine.search import SEARCH_RECORD
     from meshseg.run import run
     from meshseg.tracking import FoldRecord, Tracker
 
@@ -158,6 +163,11 @@ def test_refine_search_chooses_on_held_out_training_meshes_through_meshseg_run(t
     best = max(rows, key=lambda g: g["score"])  # the first of equals
     assert (best["lam"], best["omega"]) == (m["refine/lam"], m["refine/omega"])
     assert np.isclose(m["refine/held_out_acc"], best["score"]) and len(best["per_mesh"]) == len(searched["held_out"])
+    assert FoldRecord.REFINE_SEARCH == SEARCH_RECORD  # the artifact the refinement stage names
+    # the values the search logged before it moved from run.py into the refinement stage (commit 0b4bc1f)
+    assert (m["refine/lam"], m["refine/omega"]) == (8.0, 2.0)
+    assert m["refine/held_out_acc"] == pytest.approx(0.9555690629804559, rel=1e-6)
+    assert (m["test/acc"], m["test/acc_raw"]) == pytest.approx((0.9673417327150057, 0.8804367709833992), rel=1e-6)
     assert m["time/refine_search_s"] > 0 and m["time/predict_held_out_s"] > 0
     # the fold's model refines with the chosen settings, searching nothing, and labels the test mesh as the run did
     model, _ = load_run_model(Tracker(f"sqlite:///{tmp_path}/mlruns/mlflow.db", "meshseg"), r.info.run_id)

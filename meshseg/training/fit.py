@@ -27,21 +27,29 @@ class FoldPredictions:
     parts: dict[str, object] = field(default_factory=dict)  # the fitted model's parts by stage name
     fitter: object | None = None  # the fitted fitter and the standardiser of its inputs: the fold's model
     standardiser: object | None = None
-    held_out: list[Mesh] = field(default_factory=list)  # training meshes the fitter held out (held_out=True)
-    held_out_probabilities: list[np.ndarray] = field(default_factory=list)  # by the model fitted without them
+
+    def predict_held_out(self, source: FeatureSource, timings: Timings) -> tuple[list[Mesh], list[np.ndarray]]:
+        """The training meshes the fitter held out (`held_out_`: gbdt's early-stopping meshes; none for the
+        others) and, for every face, the probabilities of the model it fitted without them: what a refinement
+        may choose its settings on (meshseg.refine.search). Timed as `predict_held_out` (read and predicted)."""
+        if not getattr(self.fitter, "holds_out_meshes", False):
+            return [], []
+        aside = replace(source, timings=Timings())  # their reads stay out of the test meshes' phases
+        with timings("predict_held_out"):
+            held = [
+                (m, self.fitter.predict_held_out(X))
+                for m, X in iter_test_inputs(aside, self.fitter.held_out_, self.standardiser)
+            ]
+        return [m for m, _ in held], [p for _, p in held]
 
 
-def fit_predict(
-    source: FeatureSource, fitter: Fitter, faces_per_mesh: int | None, workers: int = 2, held_out: bool = False
-) -> FoldPredictions:
+def fit_predict(source: FeatureSource, fitter: Fitter, faces_per_mesh: int | None, workers: int = 2) -> FoldPredictions:
     """Features (from the cache or computed), the fitter (built by `build_fitter`, with the run's context)
     fitted on the training meshes of the source's fold (`faces_per_mesh` sampled from each, all when None),
-    then class probabilities for every face of every test mesh; with `held_out`, also for every face of
-    the training meshes the fitter held out, by the model it fitted without them.
+    then class probabilities for every face of every test mesh.
 
     Timings (seconds): `features` (computing what the cache lacks), `mesh` (reading meshes), `load`
-    (reading cached features), `rings` (X^1..X^B), `standardise`, `train`, `predict` (the model only),
-    `predict_held_out` (the held-out meshes, read and predicted)."""
+    (reading cached features), `rings` (X^1..X^B), `standardise`, `train`, `predict` (the model only)."""
     ctx, fold = fitter.context, source.fold
     timings = source.timings
     with timings("features"):
@@ -68,14 +76,6 @@ def fit_predict(
         meshes.append(mesh)
         with timings("predict"):
             probabilities.append(fitter.predict_proba(X))
-    held = []  # the held-out training meshes and their probabilities (what refine.search chooses on)
-    if held_out:
-        aside = replace(source, timings=Timings())  # their reads stay out of the test meshes' phases
-        with timings("predict_held_out"):
-            held = [
-                (m, fitter.predict_held_out(X))
-                for m, X in iter_test_inputs(aside, fitter.held_out_, train.standardiser)
-            ]
     counts = {
         "train_samples": train.samples_per_epoch,
         "train_distinct": len(train.y),  # faces any epoch trained on (more than train_samples with resample=epoch)
@@ -91,6 +91,4 @@ def fit_predict(
         fitter.parts_,
         fitter,
         train.standardiser,
-        [m for m, _ in held],
-        [p for _, p in held],
     )
