@@ -10,7 +10,7 @@ import pytest
 
 from meshseg.errors import ManifestError
 from meshseg.report.cells import Cell, Row, Table
-from meshseg.report.claims import SetDiff, build_report, decide, judge, summary_table
+from meshseg.report.claims import SetDiff, brief_table, build_report, decide, judge, summary_table
 from meshseg.report.claims_file import Claim, ClaimsFile, TableSpec, load_claims
 from meshseg.report.manifest import Column, Group, Manifest, Set, load_manifest
 
@@ -192,6 +192,15 @@ def test_build_report_judges_tables_too():
     assert [v.verdict for v in report.verdicts] == ["reproduced"]
     assert report.tables[0].verdict == "not yet run"  # the hand-made table has no average row
     assert summary_table(report).splitlines()[2].startswith("| c | a beats b (§4) | +2.00 |")
+    v = report.verdicts[0]
+    assert brief_table(report).splitlines()[2] == f"| c | a > b (§4) | +2.00 | {v.reproduced_text} | reproduced |"
+    for test, kw, text in (
+        ("every_set", {"sets": ("s1",)}, "a > b on every set, s1 (§4)"),
+        ("equal", {"margin": 0.5}, "a ≈ b (±0.5) (§4)"),
+        ("refinement", {"b": None}, "a: refined > raw (§4)"),
+    ):
+        cf2 = ClaimsFile("claims", "C", "rule", (), (claim(test, **kw),), (), 1.0, 2.0, {}, Path("c.yaml"))
+        assert brief_table(build_report(cf2, {"t": t})).splitlines()[2].startswith(f"| c | {text} |")
 
 
 def test_the_readme_claims_table_matches_reports_claims_csv():
@@ -200,12 +209,12 @@ def test_the_readme_claims_table_matches_reports_claims_csv():
     block = re.search(r"<!-- claims:begin -->\n(.*?)<!-- claims:end -->", readme, re.S)
     assert block, "README lacks the claims table between <!-- claims:begin --> and <!-- claims:end -->"
     claims_md = (REPO / "reports/claims/claims.md").read_text()
-    assert block.group(1).strip() in claims_md  # the whole table, budget column and all (scripts/readme_claims.py)
+    assert block.group(1).strip() in claims_md  # the whole brief table (scripts/readme_claims.py)
     rows = [line.split(" | ") for line in block.group(1).splitlines() if re.match(r"\| \w+ \|", line)]
     shipped = list(csv.DictReader((REPO / "reports/claims/claims.csv").open()))
     assert [r[0].strip("| ") for r in rows] == [s["id"] for s in shipped]
     for r, s in zip(rows, shipped):
-        assert r[4].split(" (")[0].split(";")[0] == s["verdict"], (r, s)
+        assert r[4].rstrip(" |").split(" (")[0].split(";")[0] == s["verdict"], (r, s)
         if s["reproduced"]:
             assert r[3].startswith(f"{float(s['reproduced']):+.2f} ["), (r, s)
         else:
