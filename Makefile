@@ -42,6 +42,11 @@ TEST_WORKERS ?= 2
 test: lint
 	$(BIN)/python -m pytest -n $(TEST_WORKERS) --durations=10
 
+# Races of processes and kills mid-run (pytest -m processes): slow by nature, so outside `make test`; CI runs them
+# right after it.
+process-test: install
+	$(BIN)/python -m pytest -n $(TEST_WORKERS) -m processes --durations=5
+
 # A one-node SLURM cluster and an MLflow server on PostgreSQL, started here as root (scripts/local_cluster.sh,
 # apt-installing what is missing), a smoke sweep through hydra/launcher=slurm, and everything stopped again.
 cluster-test: install

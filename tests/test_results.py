@@ -225,6 +225,7 @@ def _import_each(stores: list[str], folder: str, barrier, results) -> None:
         raise
 
 
+@pytest.mark.processes
 def test_two_imports_at_once_make_one_finished_run_per_config(exported, tmp_path):
     """Defect 3: two imports of one folder into one new store at once made duplicates in 4 of 4 trials.
     Two processes import into 5 new stores in turn, both starting each import together (a barrier)."""

@@ -345,6 +345,7 @@ def test_a_failing_category_is_marked_failed_and_the_others_finish(store, tmp_pa
         assert f"{bad}:" in failed.data.tags["error"]
 
 
+@pytest.mark.processes
 def test_a_killed_fold_resumes_from_its_last_epoch_checkpoint(store, cache_dir):
     """tracking.checkpoints=true (what budget=paper does on its own): SIGKILL a fold mid-training; its
     rerun resumes after the last checkpointed epoch, trains only the epochs left, and leaves no checkpoint."""
@@ -379,6 +380,7 @@ def test_a_killed_fold_resumes_from_its_last_epoch_checkpoint(store, cache_dir):
     assert run.info.status == "FINISHED" and not ckpt.parent.parent.exists()
 
 
+@pytest.mark.processes
 def test_killed_sweep_resumes_doing_only_what_is_missing(store):
     """SIGKILL a sweep once two folds have FINISHED; rerunning skips those and redoes the rest."""
     args = [sys.executable, "-m", "meshseg.run", *SMALL, "category=table", "-m"]
@@ -432,6 +434,7 @@ def test_killed_sweep_resumes_doing_only_what_is_missing(store):
     assert (rerun.stdout + rerun.stderr).count("skip:") == 5 and len(runs(store, "FINISHED")) == 5
 
 
+@pytest.mark.processes
 def test_two_joblib_workers_share_one_sqlite_store(store):
     r = meshseg_run(
         *SMALL,

@@ -40,6 +40,7 @@ def sweep(tmp_path, cache_dir, *overrides):
     return r.stdout + r.stderr
 
 
+@pytest.mark.processes
 def test_a_sweep_of_two_categories_is_one_parent_with_its_folds_nested_and_a_rerun_adds_none(
     smoke_store, tmp_path, cache_dir
 ):
@@ -90,6 +91,7 @@ def test_the_smoke_stores_sweeps_are_parents_the_report_and_export_ignore(smoke_
     assert export(tracker, tmp_path / "results") == (18, 0)  # one record per fold, none for a parent
 
 
+@pytest.mark.processes
 def test_sweeps_of_one_study_started_at_once_agree_on_one_parent(tmp_path):
     """Four sweeps of one identity open their parent at once, five times over (one key each): every one gets the
     same kept parent, and no other parent survives."""

@@ -30,6 +30,7 @@ from meshseg.tracking import (
 from meshseg.tracking.store import retry
 
 
+@pytest.mark.processes
 def test_processes_opening_a_new_sqlite_store_at_once_all_succeed(tmp_path):
     """MLflow builds a new sqlite schema on first use; unlocked, a second process doing the same at the
     same moment fails with 'duplicate column name'."""
@@ -130,6 +131,7 @@ def test_claims_racing_from_threads_leave_one_winner(tmp_path):
     assert [r.info.run_id for r in t.runs("attributes.status = 'RUNNING'")] == winners
 
 
+@pytest.mark.processes
 def test_sigterm_mid_run_ends_the_run_killed(store):
     """What `scancel` does to a job: SIGTERM while the fold trains. The run must end KILLED (never stay
     RUNNING or become FINISHED without metrics); a KILLED run does not hold its config, so the next sweep
@@ -210,6 +212,7 @@ def test_an_interrupt_during_training_reaches_the_fold_as_an_interrupt():
         train_stage(InterruptedAtStep3(), data, TrainContext(epochs=2, batch_size=8))
 
 
+@pytest.mark.processes
 def test_two_sweeps_of_one_study_at_once_train_each_fold_once(store):
     """Both sweeps start together; every fold is trained by one of them and skipped by the other."""
     args = [sys.executable, "-m", "meshseg.run", *SMALL, "category=cup", "-m"]
