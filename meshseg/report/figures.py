@@ -267,6 +267,7 @@ def _dataset(overrides):
 def _labels(spec: FigureSpec, figures: FiguresFile, overrides, cfg) -> Drawn:
     """A `labels` figure: its rows' labels on the picked meshes of each set."""
     from meshseg.render import Camera, Panel, grid_png, label_colors, principal_pose, render_labels
+    from meshseg.report.runs import run_predictions
 
     runs = [r for r in spec.rows if r != TRUTH]
     table = _table(spec, figures, runs, overrides, cfg) if runs else None
@@ -299,7 +300,7 @@ def _labels(spec: FigureSpec, figures: FiguresFile, overrides, cfg) -> Drawn:
                 entry[row], entry[f"{row} run"] = float(r["acc"]), str(r["config_hash"])
                 key = (row, str(r["run_id"]))
                 if key not in labels_of:
-                    labels_of[key] = _run_labels(client, str(r["run_id"]))
+                    labels_of[key] = run_predictions(client, str(r["run_id"]))
                 pred = (labels_of[key] or {}).get(f"labels_{mesh_id}")
                 if pred is None:
                     missing.append(str(r["config_hash"]))
@@ -348,9 +349,16 @@ def _cell(table, set_name: str, key: str):
 
 
 def _set_meshes(table, set_name: str, runs: list[str]) -> dict[str, pd.DataFrame]:
-    """Per run row, the set's per-mesh rows indexed by mesh id (acc, run_id, config_hash)."""
+    """Per run row, the set's per-mesh rows indexed by mesh id (acc, run_id, config_hash); a column with several
+    training seeds shows its first seed's runs."""
     m = table.meshes
-    return {k: m[(m["row"] == set_name) & (m["column"] == k)].set_index("mesh") for k in runs}
+    return {
+        k: m[(m["row"] == set_name) & (m["column"] == k)]
+        .sort_values("seed", kind="stable")
+        .drop_duplicates("mesh")
+        .set_index("mesh")
+        for k in runs
+    }
 
 
 def _pick_scores(spec: FigureSpec, runs: list[str], frame: dict) -> dict[str, float]:
@@ -376,12 +384,6 @@ def _client(run_cfg):
     from meshseg.tracking import store_uri
 
     return MlflowClient(tracking_uri=store_uri(run_cfg.tracking.uri))
-
-
-def _run_labels(client, run_id: str) -> dict | None:
-    from meshseg.report.runs import run_predictions
-
-    return run_predictions(client, run_id)
 
 
 def _check_accuracy(pred: np.ndarray, mesh, acc: float, what: str) -> None:
