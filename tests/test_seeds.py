@@ -67,7 +67,8 @@ def test_a_column_at_two_seeds_is_the_mean_over_them_and_a_missing_seed_is_not_y
     verdict = judge(Claim("s", "t", "", "seeded", "rf01", "rf"), table)
     assert (verdict.verdict, verdict.missing_runs) == ("not yet run", 2)
 
-    done = reproduce(path, [*SMOKE, "report.columns=[rf01,rf]", "report.results=null", "report.log=false"])
+    args = [*SMOKE, "report.columns=[rf01,rf]", "report.results=null", "report.log=false"]
+    done = reproduce(path, [*args, f"report.out_dir={tmp_path / 'reports'}"])
     assert [(c.column, c.folds) for c in done.launched] == [("rf01", (0, 1))] and not done.failed
     table = collect(load_manifest(path), SMOKE, boot=Bootstrap(200))
     meshes = table.meshes
