@@ -11,7 +11,7 @@ from pathlib import Path
 import yaml
 
 from meshseg.errors import ManifestError
-from meshseg.report.manifest import _Invalid, _known
+from meshseg.report.manifest import _Invalid, _known, holds_key
 
 #: what a claim's `test` may be
 TESTS = ("mean", "every_set", "most_sets", "equal", "refinement")
@@ -79,11 +79,7 @@ class ClaimsFile:
 
 def is_claims_file(path) -> bool:
     """Whether a YAML file is a claims file (a mapping with `claims:`) rather than a study manifest."""
-    try:
-        doc = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, yaml.YAMLError):
-        return False  # load_manifest says what is wrong with it
-    return isinstance(doc, dict) and "claims" in doc
+    return holds_key(path, "claims")
 
 
 def load_claims(path) -> ClaimsFile:

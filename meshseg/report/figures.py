@@ -91,11 +91,9 @@ class Drawn:
 
 def is_figures_file(path) -> bool:
     """Whether a YAML file is a figures file (a mapping with `figures:`)."""
-    try:
-        doc = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, yaml.YAMLError):
-        return False
-    return isinstance(doc, dict) and "figures" in doc
+    from meshseg.report.manifest import holds_key
+
+    return holds_key(path, "figures")
 
 
 def load_figures(path) -> FiguresFile:

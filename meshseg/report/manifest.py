@@ -135,6 +135,16 @@ class Manifest:
         return [*self.overrides, *group.overrides, *(column.overrides or ())]
 
 
+def holds_key(path, key: str) -> bool:
+    """Whether a YAML file is a mapping with `key` (a claims or figures file rather than a study manifest); an
+    unreadable one is not (its own loader says what is wrong with it)."""
+    try:
+        doc = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        return False
+    return isinstance(doc, dict) and key in doc
+
+
 class _Invalid(Exception):
     """One problem of a manifest's content; load_manifest adds the file's name."""
 
