@@ -4,6 +4,7 @@ and the report rebuilt from the import byte for byte; import is idempotent and r
 import json
 import shutil
 import tempfile
+from importlib.metadata import version
 from pathlib import Path
 
 import numpy as np
@@ -51,6 +52,7 @@ def test_export_writes_one_small_record_per_finished_run(exported, smoke_store):
         row["faces"] for row in r["per_mesh"]
     )
     assert "cores" in r["tags"]["machine"] and "torch" in r["tags"]["versions"]
+    assert f"lightgbm {version('lightgbm')}" in r["tags"]["versions"]  # GBDT records name their library
     assert torch.backends.cpu.get_cpu_capability() in r["tags"]["machine"]
     assert "split.k=2" in json.loads(r["tags"]["overrides"])
     assert max(p.stat().st_size for p, _ in records) < 20_000  # labels, no probabilities

@@ -391,15 +391,29 @@ def test_the_machine_tag_names_the_vector_instructions_and_bf16(monkeypatch):
     what PyTorch's kernels use, and says bf16 only where the CPU announces it."""
     import torch
 
+    from meshseg.tracking import provenance
     from meshseg.tracking.provenance import machine
     from meshseg.training import context
 
     monkeypatch.setattr(torch.backends.cpu, "get_cpu_capability", lambda: "AVX2")
     monkeypatch.setattr(context, "cpu_bf16_flags", lambda: [])
+    monkeypatch.setattr(provenance, "blas_kernels", lambda: None)
     assert machine().endswith(" cores, AVX2")
     monkeypatch.setattr(torch.backends.cpu, "get_cpu_capability", lambda: "AVX512")
     monkeypatch.setattr(context, "cpu_bf16_flags", lambda: ["avx512_bf16"])
-    assert machine().endswith(" cores, AVX512 + bf16")
+    monkeypatch.setattr(provenance, "blas_kernels", lambda: "SkylakeX")
+    assert machine().endswith(" cores, AVX512 + bf16, OpenBLAS SkylakeX")
+
+
+def test_the_blas_kernels_are_those_openblas_reports():
+    """What the machine tag names is threadpoolctl's view of numpy's OpenBLAS (OPENBLAS_CORETYPE moves it)."""
+    import subprocess
+    import sys
+
+    code = "from meshseg.tracking.provenance import blas_kernels; print(blas_kernels())"
+    env = {**os.environ, "OPENBLAS_CORETYPE": "Haswell"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "Haswell"
 
 
 def test_git_sha_is_dirty_for_changed_code_not_for_rewritten_reports(tmp_path):

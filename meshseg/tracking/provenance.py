@@ -38,8 +38,10 @@ def slurm_job() -> str | None:
 
 def machine(accelerator: str = "cpu") -> str:
     """What ran it: the CPU model, its cores and the vector instructions PyTorch's CPU kernels use (with bf16
-    where the CPU has it in hardware), and the GPU where one trained. Hosts with one model name differ 3x in
-    speed by their instructions, and `cpu2` (bf16-mixed) runs only where bf16 is in hardware."""
+    where the CPU has it in hardware), the kernels numpy's OpenBLAS chose for this CPU, and the GPU where one
+    trained. Hosts with one model name differ 3x in speed by their instructions, `cpu2` (bf16-mixed) runs only
+    where bf16 is in hardware, and the features differ in their last bits (curvature by up to 0.15) between
+    OpenBLAS's Haswell and SkylakeX kernels, enough to move a GBDT fold by a point (docs/results.md, verify)."""
     import os
     import platform
 
@@ -56,18 +58,34 @@ def machine(accelerator: str = "cpu") -> str:
     text = f"{cpu}, {os.cpu_count()} cores, {torch.backends.cpu.get_cpu_capability()}"
     if cpu_bf16_flags():
         text += " + bf16"
+    if kernels := blas_kernels():
+        text += f", OpenBLAS {kernels}"
     if accelerator == "gpu" and torch.cuda.is_available():
         text += f", {torch.cuda.get_device_name()}"
     return text
 
 
+def blas_kernels() -> str | None:
+    """The CPU target of the OpenBLAS numpy loaded (e.g. Haswell, SkylakeX: OPENBLAS_CORETYPE sets it), or None
+    where numpy uses another BLAS."""
+    from threadpoolctl import threadpool_info
+
+    import numpy  # noqa: F401  (loads its BLAS, so threadpoolctl sees it)
+
+    for pool in threadpool_info():
+        if pool.get("internal_api") == "openblas" and "numpy" in pool.get("filepath", ""):
+            return pool.get("architecture") or None
+    return None
+
+
 def versions() -> str:
-    """The versions of Python and the packages that shape a result."""
+    """The versions of Python and the packages that shape a result (LightGBM too: GBDT folds depend on it, and
+    a record that does not name it cannot tell a library change from a code change)."""
     import platform
     from importlib.metadata import PackageNotFoundError, version
 
     out = [f"python {platform.python_version()}"]
-    for name in ("meshseg", "torch", "numpy", "scipy", "scikit-learn", "pytorch-lightning", "mlflow"):
+    for name in ("meshseg", "torch", "numpy", "scipy", "scikit-learn", "pytorch-lightning", "mlflow", "lightgbm"):
         try:
             out.append(f"{name} {version(name)}")
         except PackageNotFoundError:
