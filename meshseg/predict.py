@@ -111,7 +111,7 @@ class FoldModel:
         features = FeatureSet.from_config(OmegaConf.create(self.features))
         refinement = build_refinement(OmegaConf.create(self.refine))
         scales = mesh_scales(mesh, features, cache_root, self.branches, self.ring_adjacency)
-        P = self.fitter.predict_proba(self.standardiser.transform(np.stack(scales, axis=1)))
+        P = self.fitter.predict_mesh(mesh, self.standardiser.transform(np.stack(scales, axis=1)))
         labels = refinement(mesh, P, mesh_groups(mesh, features, refinement.needs, cache_root))
         return P, P.argmax(axis=1), labels
 

@@ -151,7 +151,8 @@ def test_schema(path):
             return
         assert isinstance(ovs, list)
         for o in ovs:
-            assert isinstance(o, str) and re.fullmatch(r"[A-Za-z_][\w.]*=[^=\s]+", o), o
+            # key=value, or Hydra's group@package=option (model@model.stage1=cnn1d picks a nested model)
+            assert isinstance(o, str) and re.fullmatch(r"[A-Za-z_][\w.]*(@[A-Za-z_][\w.]*)?=[^=\s]+", o), o
 
     check_overrides(m["overrides"])
     cols = m["columns"]

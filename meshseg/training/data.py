@@ -7,7 +7,7 @@ Arrays are (faces, branches, features) float32: row u holds X^1(u), ..., X^B(u).
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pytorch_lightning as pl
@@ -152,10 +152,33 @@ class TrainSet:
     #: holds meshes out of its training faces, as gbdt's early stopping does, splits by it)
     mesh_index: np.ndarray | None = None
     mesh_ids: tuple[str, ...] = ()  # the fold's training meshes, in that order
+    #: (n,) each row's face within its mesh, and where the meshes came from: a fitter that needs whole training
+    #: meshes (a stacked second stage predicts every face of them) reads them back from the source
+    faces: np.ndarray | None = None
+    source: FeatureSource | None = field(default=None, repr=False)
 
     @property
     def samples_per_epoch(self) -> int:
         return len(self.y) if self.epoch_rows is None else len(self.epoch_rows[0])
+
+    def of_meshes(self, keep) -> TrainSet:
+        """The rows of the training meshes at positions `keep` (in `mesh_ids`), renumbered in that order, with
+        the same standardiser (fitted on every training mesh's faces: their inputs, never their labels)."""
+        keep = [int(i) for i in keep]
+        if self.epoch_rows is not None:
+            raise ValueError("of_meshes: rows drawn per epoch (budget.resample=epoch) cannot be split by mesh")
+        rows = np.isin(self.mesh_index, keep)
+        index = np.full(len(self.mesh_ids), -1, dtype=np.int32)
+        index[keep] = np.arange(len(keep), dtype=np.int32)
+        return replace(
+            self,
+            X=self.X[rows],
+            y=self.y[rows],
+            mesh_faces=sum(self.source.mesh(self.mesh_ids[i]).n_faces for i in keep) if self.source else 0,
+            mesh_index=index[self.mesh_index[rows]],
+            mesh_ids=tuple(self.mesh_ids[i] for i in keep),
+            faces=None if self.faces is None else self.faces[rows],
+        )
 
 
 def sample_faces(n_faces: int, per_mesh: int | None, rng: np.random.Generator) -> np.ndarray:
@@ -182,7 +205,7 @@ def build_train(
     (budget.resample=epoch), each epoch gets its own sample of `faces_per_mesh` faces per mesh: X holds
     the union of the epochs' samples (standardised on it) and `epoch_rows` says which rows each trains on."""
     rng = np.random.default_rng(seed)
-    xs, ys, which, total, per_epoch, offset = [], [], [], 0, [[] for _ in range(epochs or 0)], 0
+    xs, ys, which, faces, total, per_epoch, offset = [], [], [], [], 0, [[] for _ in range(epochs or 0)], 0
     for i, mesh_id in enumerate(mesh_ids):
         mesh, scales = source.load(mesh_id)
         if epochs is None:
@@ -195,6 +218,7 @@ def build_train(
             offset += len(idx)
         xs.append(np.stack([X[idx] for X in scales], axis=1))
         ys.append(mesh.labels[idx])
+        faces.append(idx)
         which.append(np.full(len(idx), i, dtype=np.int32))
         total += mesh.n_faces
     with source.timings("standardise"):
@@ -205,7 +229,18 @@ def build_train(
     n_classes = len(source.dataset.label_names(source.category))
     epoch_rows = None if epochs is None else tuple(np.concatenate(rows) for rows in per_epoch)
     y = np.concatenate(ys).astype(np.int64)
-    return TrainSet(X, y, standardiser, total, n_classes, epoch_rows, np.concatenate(which), tuple(mesh_ids))
+    return TrainSet(
+        X,
+        y,
+        standardiser,
+        total,
+        n_classes,
+        epoch_rows,
+        np.concatenate(which),
+        tuple(mesh_ids),
+        np.concatenate(faces),
+        source,
+    )
 
 
 def iter_test_inputs(source: FeatureSource, mesh_ids, standardiser: Standardiser) -> Iterator[tuple[Mesh, np.ndarray]]:

@@ -75,7 +75,7 @@ def fit_predict(source: FeatureSource, fitter: Fitter, faces_per_mesh: int | Non
     for mesh, X in iter_test_inputs(source, fold.test, train.standardiser):
         meshes.append(mesh)
         with timings("predict"):
-            probabilities.append(fitter.predict_proba(X))
+            probabilities.append(fitter.predict_mesh(mesh, X))
     counts = {
         "train_samples": train.samples_per_epoch,
         "train_distinct": len(train.y),  # faces any epoch trained on (more than train_samples with resample=epoch)

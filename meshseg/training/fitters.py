@@ -1,7 +1,8 @@
 """Fitters: how a model is trained on a fold's faces. Each is a class named by `_target_` in
 `conf/model/*.yaml`, shaped like a scikit-learn estimator: its hyperparameters (the YAML's keys) and the
 run's `TrainContext` go to the constructor, `fit(train)` trains on a `TrainSet` and returns the fitter,
-`predict_proba(X)` gives (n, classes) float32 for standardised inputs (n, branches, features).
+`predict_proba(X)` gives (n, classes) float32 for standardised inputs (n, branches, features), and
+`predict_mesh(mesh, X)` those of a whole mesh (the same, unless the fitter reads the surface too).
 
 After `fit`, `parts_` holds the trained parts by stage name (net, ae1, forest, ...) and `epochs_` the
 passes made over the training faces by all network stages. A new method is one such class (or, for a
@@ -55,6 +56,11 @@ class Fitter:
 
     def predict_proba(self, X: np.ndarray) -> np.ndarray:
         raise NotImplementedError
+
+    def predict_mesh(self, mesh, X: np.ndarray) -> np.ndarray:
+        """Probabilities of every face of `mesh` (a meshseg Mesh), X its standardised inputs: what a run and a
+        logged model call. Most fitters need X alone; one that reads the surface (model=stacked) overrides it."""
+        return self.predict_proba(X)
 
     def predict_held_out(self, X: np.ndarray) -> np.ndarray:
         raise NotImplementedError(f"{type(self).__name__} holds no training meshes out")
