@@ -68,9 +68,8 @@ def machine(accelerator: str = "cpu") -> str:
 def blas_kernels() -> str | None:
     """The CPU target of the OpenBLAS numpy loaded (e.g. Haswell, SkylakeX: OPENBLAS_CORETYPE sets it), or None
     where numpy uses another BLAS."""
-    from threadpoolctl import threadpool_info
-
     import numpy  # noqa: F401  (loads its BLAS, so threadpoolctl sees it)
+    from threadpoolctl import threadpool_info
 
     for pool in threadpool_info():
         if pool.get("internal_api") == "openblas" and "numpy" in pool.get("filepath", ""):
