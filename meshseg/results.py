@@ -630,7 +630,7 @@ def main(argv=None) -> None:
                 sys.exit(ERROR_EXIT)
 
 
-VERIFY_KEYS = ("where", "n", "seed", "tol", "attach", "scratch")
+VERIFY_KEYS = ("where", "n", "seed", "tol", "attach", "add", "scratch")
 
 
 def _setting(own: dict, key: str, default: str, kind, low) -> float | int:
@@ -643,6 +643,14 @@ def _setting(own: dict, key: str, default: str, kind, low) -> float | int:
     if value is None or value < low:
         raise ConfigError(f"{key}={text} is not allowed: give {'an integer' if kind is int else 'a number'} >= {low}")
     return value
+
+
+def _flag(own: dict, key: str) -> bool:
+    """verify's true/false setting `key` (default false) from the command line."""
+    text = own.get(key, "false").lower()
+    if text not in ("true", "false"):
+        raise ConfigError(f"{key}={own[key]} is not allowed: give true or false")
+    return text == "true"
 
 
 def attach_labels(tracker: Tracker, run, path: Path, record: dict) -> bool:
@@ -675,27 +683,30 @@ def verify_main(own: dict) -> None:
     n = _setting(own, "n", "", int, 1) if "n" in own else None
     seed = _setting(own, "seed", "0", int, 0)
     tol = _setting(own, "tol", str(V.TOLERANCE), float, 0.0)
-    attach = own.get("attach", "false").lower()
-    if attach not in ("true", "false"):
-        raise ConfigError(f"attach={own['attach']} is not allowed: give true or false")
+    attach, add = (_flag(own, key) for key in ("attach", "add"))
     out = Path(own.get("out", "reports/verify"))
     check_output_folder(out, "out")
+    kept = V.read_table(out) if add else []
     records, unreadable = read_records(root)
     for path, why in unreadable:
         print(f"refused {path}: {why}", file=sys.stderr)
-    chosen, choice = V.choose(records, where, n, seed), V.choice_text(where, n, seed)
+    done = V.listed(kept)
+    fresh = [(p, r) for p, r in records if str(p.relative_to(root)) not in done]
+    chosen, choice = V.choose(fresh, where, n, seed), V.choice_text(where, n, seed)
+    if kept:
+        choice += f", added to the {len(kept)} records the table listed before"
 
     def progress(outcomes, total):  # the table rewritten after each record: a verify cut short keeps its part
         V.say(outcomes, total)
-        V.write_table(out, V.table_files(outcomes, root, tol, choice, total))
+        V.write_table(out, V.table_files(kept + V.rows(outcomes, root), root, tol, choice, len(kept) + total))
 
     with tempfile.TemporaryDirectory(prefix="meshseg-verify-") as tmp:
         scratch = Path(own.get("scratch", tmp))
-        adds = attach_labels if attach == "true" else None
+        adds = attach_labels if attach else None
         outcomes = V.verify(chosen, scratch, tol, hashes=current_hash, attach=adds, progress=progress)
     if not chosen:
-        V.write_table(out, V.table_files([], root, tol, choice, 0))
-    print(f"verify: {V.summary(outcomes)}; table in {out}")
+        V.write_table(out, V.table_files(kept, root, tol, choice, len(kept)))
+    print(f"verify: {V.summary(V.rows(outcomes, root))}; table in {out}")
     if any(o.status in ("differs", "failed") for o in outcomes):
         sys.exit(ERROR_EXIT)
 

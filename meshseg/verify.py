@@ -1,7 +1,7 @@
 """`python -m meshseg.results verify`: shipped records made again and compared, mesh by mesh.
 
     python -m meshseg.results verify [dir=results] [where=model=rf,category=Hand|Ant] [n=30] [seed=0]
-                                     [tol=0.005] [attach=false] [scratch=PATH] [out=reports/verify]
+                                     [tol=0.005] [attach=false] [add=false] [scratch=PATH] [out=reports/verify]
 
 A record says which code, data, fold and settings produced it; verify checks that. The records under `dir`
 whose tags match `where` (comma-separated tag=value pairs, a value's alternatives joined by `|`; none: all)
@@ -25,7 +25,9 @@ again (so a verify cut short resumes with the same `scratch`). With `attach=true
 labels whose run agrees (identical or within) gets the labels of the run made again, written into its file:
 how the figures' runs from before records carried labels get them (experiments/figures_psb.yaml). The
 table goes to `out` (verify.md, verify.csv), rewritten after each record; the command exits 1 when any
-record differs or cannot be made again (failed).
+record differs or cannot be made again (failed). With `add=true` the table already at `out` is kept and
+added to: the records it lists are not chosen again, so a sample grows over sessions and machines (each row
+names the machine its run was made again on) instead of starting over when `dir` has gained records.
 """
 
 from __future__ import annotations
@@ -170,13 +172,15 @@ HEADER = (
     "max Δ acc_raw",
     "seconds",
     "labels",
+    "made again on",
     "record's machine",
     "note",
 )
 
 
 def rows(outcomes: list[Outcome], root: Path) -> list[tuple]:
-    out = []
+    """The table's rows (HEADER's columns, as text) of records verified on this machine."""
+    here, out = machine("cpu"), []
     for o in outcomes:
         t = o.record["tags"]
         deltas = [f"{o.delta[c]:.2e}" if c in o.delta else "" for c in COLUMNS]
@@ -193,6 +197,7 @@ def rows(outcomes: list[Outcome], root: Path) -> list[tuple]:
                 *deltas,
                 f"{o.seconds:.0f}",
                 "attached" if o.attached else "yes" if o.record.get("labels") else "",
+                here,
                 t.get("machine", ""),
                 o.why.replace("\n", " ").replace("|", "/"),
             )
@@ -200,13 +205,32 @@ def rows(outcomes: list[Outcome], root: Path) -> list[tuple]:
     return out
 
 
-def summary(outcomes: list[Outcome]) -> str:
-    counts = {s: sum(o.status == s for o in outcomes) for s in ("identical", "within", "differs", "stale", "failed")}
-    deltas = [max(o.delta.values()) for o in outcomes if o.delta]
-    attached = sum(o.attached for o in outcomes)
+def summary(body: list[tuple]) -> str:
+    """The outcome in words, from the table's rows (HEADER's columns)."""
+    col = {name: i for i, name in enumerate(HEADER)}
+    statuses = [r[col["status"]] for r in body]
+    counts = {s: statuses.count(s) for s in ("identical", "within", "differs", "stale", "failed")}
+    deltas = [float(r[col[c]]) for r in body for c in ("max Δ acc", "max Δ acc_raw") if r[col[c]]]
+    attached = sum(r[col["labels"]] == "attached" for r in body)
     text = ", ".join(f"{v} {k}" for k, v in counts.items() if v) or "nothing chosen"
     text += f"; largest per-mesh |Δ| {max(deltas):.2e}" if deltas else ""
     return text + (f"; labels attached to {attached} records" if attached else "")
+
+
+def read_table(out: Path) -> list[tuple]:
+    """The rows of the table already at `out` (none if there is none): what `add=true` keeps and adds to."""
+    path = out / "verify.csv"
+    if not path.is_file():
+        return []
+    header, *body = list(csv.reader(io.StringIO(path.read_text(encoding="utf-8"))))
+    if tuple(header) != HEADER or any(len(r) != len(HEADER) for r in body):
+        raise ConfigError(f"{path}: not a verify table of today's columns ({', '.join(HEADER)}): give another out=")
+    return [tuple(r) for r in body]
+
+
+def listed(body: list[tuple]) -> set[str]:
+    """The record files (relative to the records' folder) a table's rows name."""
+    return {r[0] for r in body}
 
 
 def choice_text(where: dict, n: int | None, seed: int) -> str:
@@ -215,18 +239,20 @@ def choice_text(where: dict, n: int | None, seed: int) -> str:
     return text + (f", a sample of {n} (seed {seed})" if n else "")
 
 
-def table_files(outcomes: list[Outcome], root: Path, tol: float, choice: str, chosen: int) -> dict[str, str]:
-    """verify.md and verify.csv (`choice`: choice_text; `chosen`: how many records it chose)."""
-    body = rows(outcomes, root)
+def table_files(body: list[tuple], root: Path, tol: float, choice: str, chosen: int) -> dict[str, str]:
+    """verify.md and verify.csv of the table's rows (`rows`, and those an `add=true` kept; `choice`: choice_text;
+    `chosen`: how many rows the table has when this call's records are all done)."""
     buf = io.StringIO()
     csv.writer(buf).writerows([HEADER, *body])
-    done = f" ({len(outcomes)} of {chosen} done so far)" if len(outcomes) < chosen else ""
+    done = f" ({len(body)} of {chosen} done so far)" if len(body) < chosen else ""
+    on = [r[HEADER.index("made again on")] for r in body] or [machine("cpu")]
+    machines = "; ".join(f"{m} ({on.count(m)} records)" for m in dict.fromkeys(on)) if body else on[0]
     md = [
         "# Shipped records made again",
         "",
         f"Records: {choice} under `{root}`.{done}",
-        f"This machine: {machine('cpu')}. Tolerance: per-mesh |Δ| <= {tol:g} is 'within'.",
-        f"Outcome: {summary(outcomes)}.",
+        f"Made again on: {machines}. Tolerance: per-mesh |Δ| <= {tol:g} is 'within'.",
+        f"Outcome: {summary(body)}.",
         "",
         "| " + " | ".join(HEADER) + " |",
         "|" + "---|" * len(HEADER),

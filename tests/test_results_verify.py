@@ -128,3 +128,42 @@ def test_attach_gives_a_record_without_labels_those_of_its_run_made_again_and_im
     arrays = np.load(store.client.download_artifacts(run.info.run_id, "predictions.npz", str(tmp_path / "dl")))
     for mesh, text in record["labels"]["meshes"].items():
         assert np.array_equal(arrays[f"labels_{mesh}"], decode_labels(text))
+
+
+def test_add_keeps_the_table_and_chooses_only_records_it_does_not_list(
+    rf_record, tmp_path, cache_dir, monkeypatch, capsys
+):
+    import csv
+
+    from meshseg.verify import HEADER
+
+    root, record = rf_record
+    for k, v in smoke_env(tmp_path, cache_dir).items():
+        monkeypatch.setenv(k, v)
+    rel = next(str(p.relative_to(root)) for p in root.rglob("*.json"))
+    out, scratch = tmp_path / "verify", tmp_path / "scratch"
+    elsewhere = ["psb/Cup/0123456789abcdef.json", "Cup f0", "rf", "loo", "Cup", "0", "within", "1.00e-04", "0.00e+00"]
+    elsewhere += ["9", "", "Other CPU, 2 cores", "Other CPU, 2 cores", ""]
+    out.mkdir()
+    with (out / "verify.csv").open("w", newline="") as f:
+        csv.writer(f).writerows([HEADER, elsewhere])
+
+    args = ["verify", f"dir={root}", f"scratch={scratch}", f"out={out}", "add=true"]
+    main(args)  # the rf record is not listed: made again and added below the kept row
+    body = list(csv.reader((out / "verify.csv").open()))[1:]
+    assert [r[0] for r in body] == ["psb/Cup/0123456789abcdef.json", rel] and body[1][6] == "identical"
+    md = (out / "verify.md").read_text()
+    assert "added to the 1 records the table listed before" in md
+    assert "Made again on: Other CPU, 2 cores (1 records); " in md and "Outcome: 1 identical, 1 within;" in md
+
+    before = (out / "verify.csv").read_text()
+    main(args)  # both listed now: nothing chosen, nothing made, the table as it was
+    assert (out / "verify.csv").read_text() == before
+    assert "Outcome: 1 identical, 1 within; largest per-mesh |Δ| 1.00e-04." in (out / "verify.md").read_text()
+
+    (out / "verify.csv").write_text(",".join(h for h in HEADER if h != "made again on") + "\n")
+    with pytest.raises(SystemExit):
+        main(args)
+    assert "verify.csv: not a verify table of today's columns (record, run," in capsys.readouterr().err
+    main(args[:-1])  # without add the old table is simply replaced
+    assert list(csv.reader((out / "verify.csv").open()))[0] == list(HEADER)
