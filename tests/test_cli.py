@@ -1,5 +1,6 @@
 """`python -m meshseg.data` and the Hydra config groups it composes."""
 
+import os
 import re
 import subprocess
 import sys
@@ -117,7 +118,10 @@ def test_every_command_ends_a_user_error_with_one_line_and_the_same_status(comma
 
     paths = [f"paths.{p}_dir={tmp_path}/{p}" for p in ("cache", "mlflow")]
     extra = paths if command[0] in ("meshseg.run", "meshseg.features") else []
-    r = subprocess.run([sys.executable, "-m", *command, *extra], cwd=REPO, capture_output=True, text=True, timeout=300)
+    env = {**os.environ, "MESHSEG_LOG_DIR": str(tmp_path / "logs")}  # Hydra's run folders, not the checkout's logs/
+    r = subprocess.run(
+        [sys.executable, "-m", *command, *extra], cwd=REPO, capture_output=True, text=True, timeout=300, env=env
+    )
     assert r.returncode == ERROR_EXIT == 1, r.stderr[-2000:]
     assert r.stderr.strip().startswith(message) and "Traceback" not in r.stderr, r.stderr[-2000:]
     assert not (tmp_path / "cache").exists() and not (tmp_path / "mlflow").exists()  # no feature, no store
