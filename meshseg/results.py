@@ -441,7 +441,7 @@ def _read_record(path: Path) -> tuple[str | None, dict | None]:
     return None, record
 
 
-def _same_hash(records: list[tuple[Path, dict]]) -> dict[Path, str]:
+def same_hash(records: list[tuple[Path, dict]]) -> dict[Path, str]:
     """Why each record that shares its config hash with another is refused: which is the run is unknown."""
     paths: dict[str, list[Path]] = {}
     for path, record in records:
@@ -512,10 +512,10 @@ def import_records(tracker: Tracker, root: Path) -> ImportReport:
 def _import_records(tracker: Tracker, root: Path) -> ImportReport:
     report = ImportReport()
     records, report.refused = read_records(root)
-    same_hash = _same_hash(records)
+    shared = same_hash(records)
     have = {r.data.tags.get("config_hash") for r in tracker.runs("attributes.status = 'FINISHED'")}
     for path, record in records:
-        why = same_hash.get(path) or check_record(record)
+        why = shared.get(path) or check_record(record)
         if why is not None:
             report.refused.append((path, why))
             continue

@@ -69,3 +69,10 @@ def test_records_give_the_wanted_runs_in_the_wanted_order_and_a_bad_one_is_no_ru
     assert meshes["counts"][0] == {"n_train_samples": 40, "n_epochs": 1}  # RUN_COUNTS only
     assert meshes["run_id"][0] == str(record_path(tmp_path, records[1]))  # a record's run is its file
     assert f"{hashes[2]}.json: per_mesh[0] (c)" in caplog.text
+
+    copy = tmp_path / "psb" / "Tiny" / "copy.json"  # a second record of hashes[1]: neither is the run
+    write_record(copy, record(hashes[1], 1, [0.0]))
+    with caplog.at_level(logging.WARNING, logger="meshseg.report.runs"):
+        meshes = records_mesh_table(tmp_path, wanted)
+    assert list(meshes["config_hash"]) == [hashes[0], hashes[0]]
+    assert f"copy.json: config hash {hashes[1]} is also that of {record_path(tmp_path, records[1])}" in caplog.text

@@ -82,21 +82,21 @@ def mesh_table(uri: str, experiment: str, wanted: pd.DataFrame) -> pd.DataFrame:
 def records_mesh_table(root, wanted: pd.DataFrame) -> pd.DataFrame:
     """mesh_table's frame, read from the results records under `root` (e.g. results/) instead of a store: a
     record is its run exported under the run's config hash, so the wanted runs are found without importing
-    the records into MLflow first (a second, where an import takes minutes). The newest record of a hash wins;
-    one that `meshseg.results import` would refuse is no run, with a warning, as it is in the report."""
-    from meshseg.results import check_record, load_records
+    the records into MLflow first (a second, where an import takes minutes). A record that `meshseg.results
+    import` would refuse is no run, with a warning, as it is in the report: one that is not whole, and two
+    records of one config hash (both: which of them is the run is not for the report to guess)."""
+    from meshseg.results import check_record, load_records, same_hash
 
     hashes = set(wanted["config_hash"])
+    records = [(path, record) for path, record in load_records(Path(root)) if record["config_hash"] in hashes]
+    refused = same_hash(records)
     by_hash: dict[str, dict] = {}
-    for path, record in load_records(Path(root)):
-        h = record["config_hash"]
-        if h not in hashes:
-            continue
-        why = check_record(record)
+    for path, record in records:
+        why = refused.get(path) or check_record(record)
         if why is not None:
             log.warning("not read: %s: %s", path, why)
-        elif h not in by_hash or (record["end_time"] or 0) > (by_hash[h]["end_time"] or 0):
-            by_hash[h] = {**record, "path": str(path)}
+        else:
+            by_hash[record["config_hash"]] = {**record, "path": str(path)}
     return _in_order(wanted, [row for record in by_hash.values() for row in _record_rows(record)])
 
 
