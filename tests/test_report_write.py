@@ -40,3 +40,27 @@ def test_a_failed_write_leaves_no_temporary_file_and_the_old_file_whole(tmp_path
         pass
     assert (tmp_path / "table.md").read_text() == "old\n"
     assert [f.name for f in tmp_path.iterdir() if f.suffix == ".tmp"] == []
+
+
+def test_two_average_rows_of_one_label_are_logged_under_their_groups_and_a_lone_one_plainly():
+    """Table 3 prints `Average` under each of its groups: as metrics, neither may overwrite the other."""
+    from meshseg.report.cells import Cell, Row
+    from meshseg.report.manifest import Column
+    from meshseg.report.publish import summary_metrics
+
+    col, published = Column("3B", "1D CNN 3B", ("branches=3",)), Column("PFCN", "ShapePFCN", None)
+    rows = [
+        Row("Cup", "set", "small", (Cell(col, None, 90.0), Cell(published, 91.0))),
+        Row("Average", "average", "small", (Cell(col, None, 90.0), Cell(published, 91.0))),
+        Row("Lamp", "set", "large", (Cell(col, None, 80.0, missing=(1,)), Cell(published, 81.0))),
+        Row("Average", "average", "large", (Cell(col, None, 70.0), Cell(published, 71.0))),
+        Row("All", "total", "", (Cell(col, None, 75.0), Cell(published, None))),
+    ]
+    assert summary_metrics(rows) == {  # the published column: not a cell of the runs, no value
+        "cells_ok": 4,
+        "cells_incomplete": 1,
+        "cells_unavailable": 0,
+        "small.Average.3B": 90.0,
+        "large.Average.3B": 70.0,
+        "All.3B": 75.0,
+    }

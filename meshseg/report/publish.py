@@ -91,6 +91,24 @@ def bootstrap(settings: DictConfig) -> Bootstrap:
     return Bootstrap(int(settings.n_boot), float(settings.level), int(settings.seed))
 
 
+def summary_metrics(rows) -> dict[str, float]:
+    """What a logged report's run records as metrics: how many cells are ok, incomplete and unavailable, and
+    each average's value as `<row label>.<column key>` (`<group>.<row label>.<column key>` where two average
+    rows share a label, as Table 3's do, so neither overwrites the other)."""
+    cells = [c for r in rows for c in r.cells if c.status != "published"]
+    metrics = {
+        f"cells_{status}": sum(c.status == status for c in cells) for status in ("ok", "incomplete", "unavailable")
+    }
+    summaries = [row for row in rows if row.kind != "set"]
+    labels = [row.label for row in summaries]
+    for row in summaries:
+        name = row.label if labels.count(row.label) == 1 else f"{row.group}.{row.label}"
+        for c in row.cells:
+            if c.value is not None:
+                metrics[re.sub(r"[^\w.\-/ ]", "_", f"{name}.{c.column.key}")] = c.value
+    return metrics
+
+
 def log_report(table: Table, files: list[Path], settings: DictConfig) -> str:
     """Log the report as a run of experiment `settings.experiment` in the runs' store: its files as
     artifacts, each complete average as a metric. Returns the run id."""
@@ -108,14 +126,7 @@ def log_report(table: Table, files: list[Path], settings: DictConfig) -> str:
         "git_sha": git_sha(),
         "manifest": str(m.path),
     }
-    cells = [c for r in table.rows for c in r.cells if c.status != "published"]
-    metrics = {
-        f"cells_{status}": sum(c.status == status for c in cells) for status in ("ok", "incomplete", "unavailable")
-    }
-    for row in table.rows:
-        for c in row.cells:
-            if row.kind != "set" and c.value is not None:
-                metrics[re.sub(r"[^\w.\-/ ]", "_", f"{row.label}.{c.column.key}")] = c.value
+    metrics = summary_metrics(table.rows)
     params = {"overrides": " ".join(table.overrides), **OmegaConf.to_container(settings)}
     with tracker.run(f"report {m.name}", tags, params) as run_id:
         tracker.log_metrics(run_id, metrics)
