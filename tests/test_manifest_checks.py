@@ -230,6 +230,12 @@ def test_a_column_whose_runs_cannot_start_is_refused_before_the_table(tmp_path, 
     with pytest.raises(ManifestError, match=f"^{where}"):  # nothing launched, no command offered
         reproduce(path, [*store, "report.dry_run=true", "report.results=null", f"report.out_dir={tmp_path}"])
     assert not (tmp_path / "mlruns").exists()
+    shipped = tmp_path / "results"  # records to import: refused before the import opens a store for them
+    (shipped / "synthetic" / "Cup").mkdir(parents=True)
+    (shipped / "synthetic" / "Cup" / "0123456789abcdef.json").write_text("{}")
+    with pytest.raises(ManifestError, match=f"^{where}"):
+        report(path, [*store, f"report.results={shipped}", "report.log=false", f"report.out_dir={tmp_path}"])
+    assert not (tmp_path / "mlruns").exists()
 
 
 def test_a_column_whose_runs_cannot_start_is_one_error_line(tmp_path, store, monkeypatch, capsys):

@@ -16,7 +16,7 @@ from meshseg.report.aggregate import Bootstrap
 from meshseg.report.cells import Table
 from meshseg.report.config import run_overrides
 from meshseg.report.manifest import Manifest
-from meshseg.report.table import check_request, collect
+from meshseg.report.table import check_request, checked_run_config, collect
 from meshseg.report.write import markdown, write_report
 
 log = logging.getLogger("meshseg.report")
@@ -32,9 +32,9 @@ def import_results(manifest: Manifest, cfg: DictConfig) -> None:
     root = cfg.report.get("results")
     if not root or not Path(root).is_dir():
         return
-    try:  # every cell's run config, before a store is opened: one that does not compose opens none
-        configs = [
-            run_config([*manifest.cell_overrides(g, c), *run_overrides(cfg)])
+    try:  # every cell's run config, before a store is opened: one that does not compose, or that no run could
+        configs = [  # start with (branches=7), opens none and imports nothing
+            checked_run_config([*manifest.cell_overrides(g, c), *run_overrides(cfg)])
             for g in manifest.groups
             for c in manifest.columns
             if c.predictions is None

@@ -82,7 +82,7 @@ class _Planner:
             *(() if seed is None else (f"seed={seed}",)),
         )
         try:
-            cfg = _run_config(over)
+            cfg = checked_run_config(over)
         except ConfigError as e:
             raise _compose_error(e, self.manifest, group, column, self.overrides) from None
         self._add_budget_text(cfg.budget)
@@ -289,7 +289,7 @@ def _pairs_asked(manifest: Manifest, paired) -> list[tuple[str, str]]:
     return [(a, b) for a, b in paired]
 
 
-def _run_config(overrides):
+def checked_run_config(overrides):
     """A cell's run config, checked as `meshseg.run` checks it before a fold (meshseg.job.check_config): a column
     no run can be made of (branches=7) is refused before the table, not offered or launched by reproduce. The
     config's own checks only: the machine's (an accelerator, bf16 on this CPU) are for where the runs are made."""
@@ -307,7 +307,7 @@ def _compose_error(e: ConfigError, manifest: Manifest, group, column: Column, ov
     where = f"group {group.name}, column {column.key}"
     if overrides:
         try:
-            _run_config(manifest.cell_overrides(group, column))
+            checked_run_config(manifest.cell_overrides(group, column))
         except ConfigError:
             pass
         else:
