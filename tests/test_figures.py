@@ -53,7 +53,7 @@ def test_the_shipped_figures_file_names_real_columns_and_sets():
     ("edit", "message"),
     [
         ({"pick": "best"}, "pick 'best' is not one of median, lowest, largest_gap, first"),
-        ({"colour": 1}, "unknown keys ['colour']"),
+        ({"colour": 1}, "figure 'f': unknown key 'colour': a figure takes key, "),
         ({"table": "no_such_table"}, "table 'no_such_table': no no_such_table.yaml beside"),
         ({"rows": ["truth"], "pick": "median"}, "pick median needs a run row"),
         ({"pick": "largest_gap"}, "largest_gap needs two run rows"),

@@ -11,7 +11,7 @@ from pathlib import Path
 import yaml
 
 from meshseg.errors import ManifestError
-from meshseg.report.manifest import _Invalid, _known, holds_key
+from meshseg.report.schema import Invalid, holds_key, known
 
 #: what a claim's `test` may be
 TESTS = ("mean", "every_set", "most_sets", "equal", "refinement")
@@ -93,18 +93,18 @@ def load_claims(path) -> ClaimsFile:
         raise ManifestError(f"{path}: a claims file is a mapping with a non-empty `claims:` list")
     try:
         return _claims_file(doc, path)
-    except _Invalid as e:
+    except Invalid as e:
         raise ManifestError(f"{path}: {e}") from None
 
 
 def _claims_file(doc: dict, path: Path) -> ClaimsFile:
-    _known(doc, FILE_KEYS, "", "a claims file")
+    known(doc, FILE_KEYS, "", "a claims file")
     study = _study(doc.get("budget_study") or {})
     claims, seen = [], set()
     for i, c in enumerate(doc["claims"]):
         claims.append(_claim(c, f"claims[{i}]", study))
         if claims[-1].id in seen:
-            raise _Invalid(f"claims[{i}]: id {c['id']!r} is used twice")
+            raise Invalid(f"claims[{i}]: id {c['id']!r} is used twice")
         seen.add(claims[-1].id)
     full, partial = _thresholds(doc.get("thresholds") or {})
     return ClaimsFile(
@@ -123,22 +123,22 @@ def _claims_file(doc: dict, path: Path) -> ClaimsFile:
 
 def _claim(c, where: str, study: dict) -> Claim:
     if not isinstance(c, dict) or not {"id", "text", "table", "a"} <= set(c):
-        raise _Invalid(f"{where}: needs id, text, table and a")
+        raise Invalid(f"{where}: needs id, text, table and a")
     where = f"{where} ({c['id']})"
-    _known(c, CLAIM_KEYS, f"{where}: ", "a claim")
+    known(c, CLAIM_KEYS, f"{where}: ", "a claim")
     test = c.get("test", "mean")
     if test not in TESTS:
-        raise _Invalid(f"{where}: test {test!r} is not one of {list(TESTS)}")
+        raise Invalid(f"{where}: test {test!r} is not one of {list(TESTS)}")
     if (test == "refinement") != (c.get("b") is None):
-        raise _Invalid(f"{where}: b is required, except with test: refinement")
+        raise Invalid(f"{where}: b is required, except with test: refinement")
     if c.get("b") is not None and str(c["a"]) == str(c["b"]):
-        raise _Invalid(f"{where}: a and b are both column {str(c['a'])!r}; a claim compares two columns")
+        raise Invalid(f"{where}: a and b are both column {str(c['a'])!r}; a claim compares two columns")
     sets = c.get("sets")
     models = _strings(c.get("models") or [], f"{where}: models", "the budget study's models, e.g. [3B]")
     unknown = [m for m in models if study and m not in study.get("compare", {})]
     if unknown:
-        known = ", ".join(study.get("compare", {}))
-        raise _Invalid(f"{where}: models {unknown} have no budget_study.compare entry; it compares {known}")
+        compared = ", ".join(study.get("compare", {}))
+        raise Invalid(f"{where}: models {unknown} have no budget_study.compare entry; it compares {compared}")
     return Claim(
         str(c["id"]),
         " ".join(str(c["text"]).split()),
@@ -158,20 +158,20 @@ def _claim(c, where: str, study: dict) -> Claim:
 def _strings(value, where: str, what: str, empty: bool = True) -> tuple[str, ...]:
     """A list of names: a bare string would be read letter by letter (`sets: Table` as T, a, b, l, e)."""
     if not isinstance(value, list) or not (value or empty) or not all(isinstance(v, str) for v in value):
-        raise _Invalid(f"{where}={value!r} is not allowed: give a list of {what}")
+        raise Invalid(f"{where}={value!r} is not allowed: give a list of {what}")
     return tuple(value)
 
 
 def _points(value, where: str) -> float:
     """A margin or threshold: a finite number of points > 0 (a negative margin turns `equal` upside down)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < math.inf:
-        raise _Invalid(f"{where}={value!r} is not allowed: it must be a number of points > 0")
+        raise Invalid(f"{where}={value!r} is not allowed: it must be a number of points > 0")
     return float(value)
 
 
 def _share(value, where: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= 1:
-        raise _Invalid(f"{where}={value!r} is not allowed: it must be a share > 0 and <= 1 (0.75: three sets in four)")
+        raise Invalid(f"{where}={value!r} is not allowed: it must be a share > 0 and <= 1 (0.75: three sets in four)")
     return float(value)
 
 
@@ -179,12 +179,12 @@ def _thresholds(value) -> tuple[float, float]:
     """(full, partial): a table is fully reproduced with every run column within `full` points of the published
     averages, partly with some column within `partial`; so full <= partial."""
     if not isinstance(value, dict):
-        raise _Invalid(f"thresholds: expected {{full: points, partial: points}}, got {value!r}")
-    _known(value, ("full", "partial"), "thresholds: ", "thresholds")
+        raise Invalid(f"thresholds: expected {{full: points, partial: points}}, got {value!r}")
+    known(value, ("full", "partial"), "thresholds: ", "thresholds")
     full = _points(value.get("full", 1.0), "thresholds.full")
     partial = _points(value.get("partial", 2.0), "thresholds.partial")
     if full > partial:
-        raise _Invalid(
+        raise Invalid(
             f"thresholds: full={full:g} is more than partial={partial:g}: full is the stricter threshold "
             "(every run column within it), so full <= partial"
         )
@@ -194,12 +194,12 @@ def _thresholds(value) -> tuple[float, float]:
 def _tables(value) -> tuple[TableSpec, ...]:
     """`tables:`, the paper tables judged as a whole: [{table, label, group (optional)}]."""
     if not isinstance(value, list):
-        raise _Invalid(f"tables: expected a list of {{table, label, group}}, got {value!r}")
+        raise Invalid(f"tables: expected a list of {{table, label, group}}, got {value!r}")
     out = []
     for i, t in enumerate(value):
         if not isinstance(t, dict) or not {"table", "label"} <= set(t):
-            raise _Invalid(f"tables[{i}]: needs table and label, got {t!r}")
-        _known(t, TABLE_KEYS, f"tables[{i}]: ", "a tables entry")
+            raise Invalid(f"tables[{i}]: needs table and label, got {t!r}")
+        known(t, TABLE_KEYS, f"tables[{i}]: ", "a tables entry")
         out.append(TableSpec(str(t["table"]), str(t["label"]), t.get("group")))
     return tuple(out)
 
@@ -213,10 +213,10 @@ def check_manifests(claims: ClaimsFile) -> None:
     named += [(f"budget_study.{k}", str(claims.study[k])) for k in ("table", "floor_table") if claims.study.get(k)]
     for where, name in named:
         if not (folder / f"{name}.yaml").is_file():
-            known = ", ".join(p.stem for p in sorted(folder.glob("*.yaml")) if p.name != claims.path.name)
+            beside = ", ".join(p.stem for p in sorted(folder.glob("*.yaml")) if p.name != claims.path.name)
             raise ManifestError(
                 f"{claims.path}: {where}: table {name!r} is no manifest (no {folder / name}.yaml); "
-                f"the manifests beside it: {known}"
+                f"the manifests beside it: {beside}"
             )
 
 
@@ -224,18 +224,18 @@ def _study(spec) -> dict:
     """`budget_study:` with each model's `compare` as a list of (alternative, cpu) pairs; one pair may be
     written bare ([a, b])."""
     if not isinstance(spec, dict):
-        raise _Invalid(f"budget_study: expected a mapping with table and compare, got {spec!r}")
-    _known(spec, STUDY_KEYS, "budget_study: ", "budget_study")
+        raise Invalid(f"budget_study: expected a mapping with table and compare, got {spec!r}")
+    known(spec, STUDY_KEYS, "budget_study: ", "budget_study")
     if spec and "table" not in spec:
-        raise _Invalid("budget_study: needs table, the budget study's manifest")
+        raise Invalid("budget_study: needs table, the budget study's manifest")
     if not isinstance(spec.get("compare") or {}, dict):
-        raise _Invalid(f"budget_study.compare: expected {{model: [[a, b], ...]}}, got {spec['compare']!r}")
+        raise Invalid(f"budget_study.compare: expected {{model: [[a, b], ...]}}, got {spec['compare']!r}")
     spec = dict(spec)
     compare = {}
     for model, pairs in (spec.get("compare") or {}).items():
         pairs = [pairs] if pairs and all(isinstance(p, str) for p in pairs) else pairs
         if not pairs or not all(isinstance(p, list) and len(p) == 2 for p in pairs):
-            raise _Invalid(f"budget_study.compare.{model}: a pair [a, b] or a list of them")
+            raise Invalid(f"budget_study.compare.{model}: a pair [a, b] or a list of them")
         compare[str(model)] = [tuple(map(str, p)) for p in pairs]
     if compare:
         spec["compare"] = compare

@@ -34,6 +34,7 @@ import pandas as pd
 import yaml
 
 from meshseg.errors import ManifestError
+from meshseg.report.schema import Invalid, holds_key, known
 
 log = logging.getLogger("meshseg.report")
 
@@ -91,8 +92,6 @@ class Drawn:
 
 def is_figures_file(path) -> bool:
     """Whether a YAML file is a figures file (a mapping with `figures:`)."""
-    from meshseg.report.manifest import holds_key
-
     return holds_key(path, "figures")
 
 
@@ -105,14 +104,14 @@ def load_figures(path) -> FiguresFile:
         raise ManifestError(f"{path}: cannot read it as YAML: {e}") from None
     try:
         return _figures_file(path, doc)
-    except (KeyError, TypeError, ValueError) as e:
+    except (Invalid, KeyError, TypeError, ValueError) as e:
         raise ManifestError(f"{path}: {e.args[0] if e.args else e}") from None
 
 
 def _figures_file(path: Path, doc) -> FiguresFile:
     if not isinstance(doc, dict):
         raise ValueError("not a mapping")
-    _known(doc, FILE_KEYS, "the file")
+    known(doc, FILE_KEYS, "", "a figures file")
     if doc.get("name") != path.stem:
         raise ValueError(f"name must be the file's stem {path.stem!r}, not {doc.get('name')!r}")
     figures = doc.get("figures")
@@ -130,7 +129,7 @@ def _figures_file(path: Path, doc) -> FiguresFile:
 def _figure(f, path: Path) -> FigureSpec:
     if not isinstance(f, dict):
         raise ValueError(f"a figure must be a mapping, not {f!r}")
-    _known(f, FIGURE_KEYS, f"figure {f.get('key')!r}")
+    known(f, FIGURE_KEYS, f"figure {f.get('key')!r}: ", "a figure")
     key, kind = f.get("key"), f.get("kind")
     if not isinstance(key, str) or not re.fullmatch(r"[A-Za-z0-9_\-]+", key):
         raise ValueError(f"figure key {key!r}: give a plain name (letters, digits, _ and -)")
@@ -188,12 +187,6 @@ def _check_features(spec: FigureSpec, path: Path) -> None:
         raise ValueError(f"figure {key}: rows: give the feature columns it maps")
     if kind == "feature_image" and (len(spec.shape) != 2 or not isinstance(spec.face, int) or spec.face < 0):
         raise ValueError(f"figure {key}: give shape: [rows, columns] and face: a face index >= 0")
-
-
-def _known(value: dict, keys: tuple[str, ...], where: str) -> None:
-    unknown = [str(k) for k in value if k not in keys]
-    if unknown:
-        raise ValueError(f"{where}: unknown keys {unknown}; known: {', '.join(keys)}")
 
 
 def _strings(doc: dict, key: str) -> tuple[str, ...]:

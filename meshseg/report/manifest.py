@@ -2,7 +2,7 @@
 and the published numbers beside them, as frozen dataclasses. The schema is in experiments/README.md.
 
 `load_manifest` is the one place a manifest is checked: each part is read by its own function, which says
-what is wrong with it (`_Invalid`), and every problem reaches the user as one ManifestError naming the file."""
+what is wrong with it (`Invalid`), and every problem reaches the user as one ManifestError naming the file."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ from pathlib import Path
 import yaml
 
 from meshseg.errors import ConfigError, ManifestError
+from meshseg.report.schema import Invalid, known
 
 #: formats of predictions on disk a column can score (`predictions: {path, format}`)
 PREDICTION_FORMATS = ("psb_labels",)
@@ -135,33 +136,11 @@ class Manifest:
         return [*self.overrides, *group.overrides, *(column.overrides or ())]
 
 
-def holds_key(path, key: str) -> bool:
-    """Whether a YAML file is a mapping with `key` (a claims or figures file rather than a study manifest); an
-    unreadable one is not (its own loader says what is wrong with it)."""
-    try:
-        doc = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, yaml.YAMLError):
-        return False
-    return isinstance(doc, dict) and key in doc
-
-
-class _Invalid(Exception):
-    """One problem of a manifest's content; load_manifest adds the file's name."""
-
-
-def _known(value: dict, keys: tuple[str, ...], where: str, what: str) -> None:
-    """Refuse a key outside the schema, naming the known ones: a typo would otherwise be dropped without a word
-    (a column's `overide:` makes it a published-only column, its runs neither counted nor launched)."""
-    unknown = [str(k) for k in value if k not in keys]
-    if unknown:
-        raise _Invalid(f"{where}unknown key {unknown[0]!r}: {what} takes {', '.join(keys)}")
-
-
 def _overrides(value, where: str) -> tuple[str, ...]:
     if value is None:
         return ()
     if not isinstance(value, list) or not all(isinstance(o, str) and "=" in o for o in value):
-        raise _Invalid(f"{where}: overrides must be a list of key=value strings, got {value!r}")
+        raise Invalid(f"{where}: overrides must be a list of key=value strings, got {value!r}")
     return tuple(value)
 
 
@@ -169,12 +148,12 @@ def _numbers(value, n: int, where: str) -> tuple[float | None, ...]:
     if value is None:
         return (None,) * n
     if not isinstance(value, list) or len(value) != n:
-        raise _Invalid(f"{where}: expected a list of {n} numbers (one per column, null for none), got {value!r}")
+        raise Invalid(f"{where}: expected a list of {n} numbers (one per column, null for none), got {value!r}")
     for v in value:
         if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float))):
-            raise _Invalid(f"{where}: {v!r} is not a number")
+            raise Invalid(f"{where}: {v!r} is not a number")
         if v is not None and not math.isfinite(v):
-            raise _Invalid(f"{where}: {v!r} is not a finite number (null: no published number)")
+            raise Invalid(f"{where}: {v!r} is not a finite number (null: no published number)")
     return tuple(None if v is None else float(v) for v in value)
 
 
@@ -182,17 +161,17 @@ def _predictions(value, key: str) -> Predictions | None:
     if value is None:
         return None
     if isinstance(value, dict):
-        _known(value, ("path", "format"), f"column {key}, predictions: ", "predictions")
+        known(value, ("path", "format"), f"column {key}, predictions: ", "predictions")
     if not isinstance(value, dict) or set(value) != {"path", "format"} or value["format"] not in PREDICTION_FORMATS:
-        raise _Invalid(f"column {key}: predictions must be {{path: ..., format: one of {PREDICTION_FORMATS}}}")
+        raise Invalid(f"column {key}: predictions must be {{path: ..., format: one of {PREDICTION_FORMATS}}}")
     return Predictions(str(value["path"]), str(value["format"]))
 
 
 def _column(value, i: int) -> Column:
     """One entry of `columns:` (its `sets:` are read once the sets are known: _restricted)."""
     if not isinstance(value, dict) or not {"key", "label"} <= set(value):
-        raise _Invalid(f"columns[{i}]: needs key and label")
-    _known(value, COLUMN_KEYS, f"column {value['key']}: ", "a column")
+        raise Invalid(f"columns[{i}]: needs key and label")
+    known(value, COLUMN_KEYS, f"column {value['key']}: ", "a column")
     over = value.get("overrides")
     over = None if over is None else _overrides(over, f"column {value['key']}")
     pred = _predictions(value.get("predictions"), value["key"])
@@ -207,37 +186,37 @@ def _seeds(value, key: str, no_runs: bool) -> tuple[int, ...] | None:
     if value is None:
         return None
     if no_runs:
-        raise _Invalid(f"column {key}: seeds: only a column of runs has training seeds")
+        raise Invalid(f"column {key}: seeds: only a column of runs has training seeds")
     ok = isinstance(value, list) and value and all(isinstance(x, int) and not isinstance(x, bool) for x in value)
     if not ok or min(value) < 0 or len(set(value)) != len(value):
-        raise _Invalid(f"column {key}: seeds: give a list of distinct whole numbers >= 0, not {value!r}")
+        raise Invalid(f"column {key}: seeds: give a list of distinct whole numbers >= 0, not {value!r}")
     return tuple(value)
 
 
 def _columns(value) -> tuple[Column, ...]:
     columns = tuple(_column(c, i) for i, c in enumerate(value or []))
     if not columns or len({c.key for c in columns}) != len(columns):
-        raise _Invalid("columns must be a non-empty list with distinct keys")
+        raise Invalid("columns must be a non-empty list with distinct keys")
     return columns
 
 
 def _set(value, n: int, group: str) -> Set:
     if not isinstance(value, dict) or "name" not in value:
-        raise _Invalid(f"group {group}: each set needs a name")
+        raise Invalid(f"group {group}: each set needs a name")
     name = value["name"]
-    _known(value, SET_KEYS, f"group {group}, set {name}: ", "a set")
+    known(value, SET_KEYS, f"group {group}, set {name}: ", "a set")
     published = _numbers(value.get("published"), n, f"set {name} published")
     return Set(str(name), str(value.get("category", name)), published, value.get("test_meshes"))
 
 
 def _group(value, i: int, n: int) -> Group:
     if not isinstance(value, dict):
-        raise _Invalid(f"groups[{i}]: a group is a mapping with name and sets, got {value!r}")
+        raise Invalid(f"groups[{i}]: a group is a mapping with name and sets, got {value!r}")
     name = str(value.get("name", "?"))
-    _known(value, GROUP_KEYS, f"group {name}: ", "a group")
+    known(value, GROUP_KEYS, f"group {name}: ", "a group")
     sets = tuple(_set(s, n, name) for s in value.get("sets") or [])
     if not sets:
-        raise _Invalid(f"group {name} has no sets")
+        raise Invalid(f"group {name} has no sets")
     return Group(
         name,
         _overrides(value.get("overrides"), f"group {name}"),
@@ -255,23 +234,23 @@ def _also_average(value, group: str, sets: tuple[Set, ...]) -> tuple[tuple[str, 
         return ()
     for v in value if isinstance(value, list) else ():
         if isinstance(v, dict):
-            _known(v, ("label", "sets"), f"group {group}, also_average {v.get('label')}: ", "an also_average row")
+            known(v, ("label", "sets"), f"group {group}, also_average {v.get('label')}: ", "an also_average row")
     shape = isinstance(value, list) and all(isinstance(v, dict) and set(v) == {"label", "sets"} for v in value)
     if not shape:
-        raise _Invalid(f"group {group}: also_average must be a list of {{label: ..., sets: [names]}}, got {value!r}")
+        raise Invalid(f"group {group}: also_average must be a list of {{label: ..., sets: [names]}}, got {value!r}")
     names = [s.name for s in sets]
     out = []
     for v in value:
         given = [str(x) for x in v["sets"]] if isinstance(v["sets"], list) else []
         unknown = [x for x in given if x not in names]
         if not given or unknown:
-            raise _Invalid(
+            raise Invalid(
                 f"group {group}, also_average {v['label']}: sets {unknown or v['sets']!r} are not sets of the group; "
                 f"its sets: {', '.join(names)}"
             )
         out.append((str(v["label"]), tuple(x for x in names if x in given)))
     if len({label for label, _ in out}) != len(out):
-        raise _Invalid(f"group {group}: also_average labels must be distinct")
+        raise Invalid(f"group {group}: also_average labels must be distinct")
     return tuple(out)
 
 
@@ -288,11 +267,11 @@ def _labels(groups: tuple[Group, ...], total) -> None:
             if label in seen:
                 both = f"{seen[label]} and {what} are both labelled"
                 both = "two sets are named" if seen[label] == what == "a set" else both
-                raise _Invalid(f"group {g.name}: {both} {label!r}; each row of a group needs its own label")
+                raise Invalid(f"group {g.name}: {both} {label!r}; each row of a group needs its own label")
             seen[label] = what
             every.setdefault(label, f"{what} of group {g.name}")
     if total is not None and str(total) in every:
-        raise _Invalid(f"total: the total row and {every[str(total)]} are both labelled {str(total)!r}")
+        raise Invalid(f"total: the total row and {every[str(total)]} are both labelled {str(total)!r}")
 
 
 def _restricted(columns: tuple[Column, ...], sets: dict, groups: tuple[Group, ...]) -> tuple[Column, ...]:
@@ -310,11 +289,11 @@ def _restricted(columns: tuple[Column, ...], sets: dict, groups: tuple[Group, ..
             out.append(c)
             continue
         if not isinstance(given, list) or not given:
-            raise _Invalid(f"column {c.key}: sets must be a non-empty list of set names, got {given!r}")
+            raise Invalid(f"column {c.key}: sets must be a non-empty list of set names, got {given!r}")
         unknown = [str(n) for n in given if str(n) not in names]
         if unknown:
-            known = ", ".join(s.name for g in groups for s in g.sets)
-            raise _Invalid(f"column {c.key}: sets {unknown} name no set of the manifest; its sets: {known}")
+            its_sets = ", ".join(s.name for g in groups for s in g.sets)
+            raise Invalid(f"column {c.key}: sets {unknown} name no set of the manifest; its sets: {its_sets}")
         out.append(replace(c, sets=tuple(dict.fromkeys(s for n in given for s in names[str(n)]))))
     return tuple(out)
 
@@ -322,10 +301,10 @@ def _restricted(columns: tuple[Column, ...], sets: dict, groups: tuple[Group, ..
 def _keys(value, keys: list[str], where: str) -> tuple[str, ...]:
     """A list of column keys of the manifest."""
     if not isinstance(value, list) or not value:
-        raise _Invalid(f"{where}: expected a list of column keys, got {value!r}")
+        raise Invalid(f"{where}: expected a list of column keys, got {value!r}")
     unknown = [str(k) for k in value if str(k) not in keys]
     if unknown:
-        raise _Invalid(f"{where}: {unknown} name no column; the columns are {', '.join(keys)}")
+        raise Invalid(f"{where}: {unknown} name no column; the columns are {', '.join(keys)}")
     return tuple(str(k) for k in value)
 
 
@@ -334,14 +313,14 @@ def _pairs(value, keys: list[str]) -> tuple[tuple[str, str], ...]:
     if value is None:
         return ()
     if not isinstance(value, list):
-        raise _Invalid(f"paired: expected a list of [a, b] column-key pairs, got {value!r}")
+        raise Invalid(f"paired: expected a list of [a, b] column-key pairs, got {value!r}")
     pairs = tuple(_keys(p, keys, f"paired {p}") for p in value)
     bad = [list(p) for p in pairs if len(p) != 2]
     if bad:
-        raise _Invalid(f"paired: {bad} are not pairs [a, b] of column keys")
+        raise Invalid(f"paired: {bad} are not pairs [a, b] of column keys")
     same = [list(p) for p in pairs if p[0] == p[1]]
     if same:
-        raise _Invalid(f"paired: {same} pair a column with itself; a pair is two different columns [a, b]")
+        raise Invalid(f"paired: {same} pair a column with itself; a pair is two different columns [a, b]")
     return pairs
 
 
@@ -350,12 +329,12 @@ def _curves(value, keys: list[str]) -> Curves | None:
     if value is None:
         return None
     if isinstance(value, dict):
-        _known(value, ("x", "series"), "curves: ", "curves")
+        known(value, ("x", "series"), "curves: ", "curves")
     if not isinstance(value, dict) or set(value) != {"x", "series"} or value["x"] not in CURVE_X:
-        raise _Invalid(f"curves: expected {{x: one of {CURVE_X}, series: {{name: [column keys]}}}}")
+        raise Invalid(f"curves: expected {{x: one of {CURVE_X}, series: {{name: [column keys]}}}}")
     series = value["series"]
     if not isinstance(series, dict) or not series:
-        raise _Invalid(f"curves: series must map names to lists of column keys, got {series!r}")
+        raise Invalid(f"curves: series must map names to lists of column keys, got {series!r}")
     return Curves(value["x"], tuple((str(n), _keys(ks, keys, f"curves series {n}")) for n, ks in series.items()))
 
 
@@ -363,28 +342,28 @@ def _document(path: Path) -> dict:
     """The manifest file's YAML mapping, with the keys every manifest has."""
     if not path.is_file():
         shipped = sorted((Path(__file__).resolve().parents[2] / "experiments").glob("*.yaml"))
-        known = ", ".join(f"experiments/{p.name}" for p in shipped)
-        raise _Invalid("no such manifest file" + (f"; the shipped manifests: {known}" if known else ""))
+        names = ", ".join(f"experiments/{p.name}" for p in shipped)
+        raise Invalid("no such manifest file" + (f"; the shipped manifests: {names}" if names else ""))
     try:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError as e:
-        raise _Invalid(f"not UTF-8 text: byte {e.object[e.start]:#04x} at offset {e.start}") from None
+        raise Invalid(f"not UTF-8 text: byte {e.object[e.start]:#04x} at offset {e.start}") from None
     try:
         doc = yaml.safe_load(text)
     except yaml.YAMLError as e:
-        raise _Invalid(f"not valid YAML: {e}") from None
+        raise Invalid(f"not valid YAML: {e}") from None
     if not isinstance(doc, dict):
-        raise _Invalid("a manifest is a mapping with name, columns and groups")
+        raise Invalid("a manifest is a mapping with name, columns and groups")
     if "claims" in doc:
-        raise _Invalid(
+        raise Invalid(
             "a claims file, not a study manifest (meshseg.report judges its claims on the manifests it names)"
         )
-    _known(doc, MANIFEST_KEYS, "", "a manifest")
+    known(doc, MANIFEST_KEYS, "", "a manifest")
     missing = [k for k in ("name", "title", "columns", "groups") if k not in doc]
     if missing:
-        raise _Invalid(f"missing key(s) {missing}")
+        raise Invalid(f"missing key(s) {missing}")
     if doc["name"] != path.stem:
-        raise _Invalid(f"name {doc['name']!r} differs from the file name {path.stem!r}")
+        raise Invalid(f"name {doc['name']!r} differs from the file name {path.stem!r}")
     return doc
 
 
@@ -393,11 +372,11 @@ def _manifest(doc: dict, path: Path) -> Manifest:
     n = len(columns)
     groups = tuple(_group(g, i, n) for i, g in enumerate(doc["groups"] or []))
     if not groups:
-        raise _Invalid("no groups")
+        raise Invalid("no groups")
     total = doc.get("total") or {}
     if not isinstance(total, dict):
-        raise _Invalid(f"total: expected {{label: ..., published: [numbers]}}, got {total!r}")
-    _known(total, ("label", "published"), "total: ", "total")
+        raise Invalid(f"total: expected {{label: ..., published: [numbers]}}, got {total!r}")
+    known(total, ("label", "published"), "total: ", "total")
     _labels(groups, total.get("label"))
     restrict = {str(c["key"]): c.get("sets") for c in doc["columns"]}
     columns = _restricted(columns, restrict, groups)
@@ -424,5 +403,5 @@ def load_manifest(path: str | Path) -> Manifest:
     path = Path(path)
     try:
         return _manifest(_document(path), path)
-    except _Invalid as e:
+    except Invalid as e:
         raise ManifestError(f"{path}: {e}") from None
