@@ -497,8 +497,10 @@ class ImportReport:
         return text + (f"; labels added to {len(self.labelled)} present runs" if self.labelled else "")
 
 
-def import_records(tracker: Tracker, root: Path) -> ImportReport:
-    """Recreate the records under `root` as FINISHED runs of the tracker's experiment (see module doc).
+def import_records(tracker: Tracker, root: Path, hashes=None) -> ImportReport:
+    """Recreate the records under `root` as FINISHED runs of the tracker's experiment (see module doc); with
+    `hashes`, only the records of those config hashes (a report's fold runs: the rest are never read into the
+    store), though a file that is no record, or two records of one hash, are refused all the same.
     Each record is checked whole first; its run is claimed like a fold run's (so two imports, or an import
     beside a sweep, never make two FINISHED runs of one config), and removed again if it cannot be made.
     A path under `root` that is no record is refused, the rest imported. SIGTERM and Ctrl-C end the import as
@@ -506,13 +508,15 @@ def import_records(tracker: Tracker, root: Path) -> ImportReport:
     from meshseg.signals import terminate_interrupts
 
     with terminate_interrupts():
-        return _import_records(tracker, root)
+        return _import_records(tracker, root, hashes)
 
 
-def _import_records(tracker: Tracker, root: Path) -> ImportReport:
+def _import_records(tracker: Tracker, root: Path, hashes) -> ImportReport:
     report = ImportReport()
     records, report.refused = read_records(root)
     shared = same_hash(records)
+    if hashes is not None:  # a record whose hash is no string is kept: refused below, by name
+        records = [(p, r) for p, r in records if not isinstance(r["config_hash"], str) or r["config_hash"] in hashes]
     have = {r.data.tags.get("config_hash") for r in tracker.runs("attributes.status = 'FINISHED'")}
     for path, record in records:
         why = shared.get(path) or check_record(record)

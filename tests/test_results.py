@@ -86,6 +86,29 @@ def test_import_then_report_is_byte_identical_and_import_is_idempotent(
         assert rebuilt[name] == original[name], name
 
 
+def test_a_report_imports_only_the_records_of_the_fold_runs_its_table_wants(exported, tmp_path, cache_dir, monkeypatch):
+    """A fresh clone's report of one study imported every record of the dataset (4,858 for the L-PSB, minutes)
+    before its table; it imports those of its own fold runs: here rf on Cup, 2 of the 18."""
+    out, *_ = exported
+    for k, v in smoke_env(tmp_path, cache_dir).items():
+        monkeypatch.setenv(k, v)
+    args = [*SMOKE, f"report.results={out}", f"report.out_dir={tmp_path}", "report.log=false"]
+    table, *_ = report(SYNTH, [*args, "report.columns=[rf]", "report.sets=[Cup]"])
+    runs = tracker(tmp_path / "mlruns").runs()
+    assert sorted((r.data.tags["model"], r.data.tags["category"], r.data.tags["fold"]) for r in runs) == [
+        ("rf", "cup", "0"),
+        ("rf", "cup", "1"),
+    ]
+    assert [c.status for r in table.rows for c in r.cells] == ["ok"]
+    report(SYNTH, args)  # the whole table: the other 16, and nothing twice
+    assert len(tracker(tmp_path / "mlruns").runs()) == 18
+    bad = tmp_path / "with_bad" / "synthetic" / "cup"
+    shutil.copytree(out, tmp_path / "with_bad", dirs_exist_ok=True)
+    (bad / "bad.json").write_text("{not json")  # not a wanted run's, nor any run's: still named
+    rep = import_records(tracker(tmp_path / "other"), tmp_path / "with_bad", hashes={runs[0].data.tags["config_hash"]})
+    assert len(rep.imported) == 1 and [p.name for p, _ in rep.refused] == ["bad.json"]
+
+
 def test_a_stale_record_is_refused_with_its_reason(exported, tmp_path):
     out, *_ = exported
     copy = tmp_path / "results"

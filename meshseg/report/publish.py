@@ -16,16 +16,17 @@ from meshseg.report.aggregate import Bootstrap
 from meshseg.report.cells import Table
 from meshseg.report.config import run_overrides
 from meshseg.report.manifest import Manifest
-from meshseg.report.table import check_request, checked_run_config, collect
+from meshseg.report.table import check_request, checked_run_config, collect, fold_hashes
 from meshseg.report.write import markdown, write_report
 
 log = logging.getLogger("meshseg.report")
 
 
-def import_results(manifest: Manifest, cfg: DictConfig) -> None:
-    """The shipped records under `report.results` (`results/<dataset>/...`) of the datasets the manifest
-    uses, imported into the runs' store (idempotent: records already there are skipped), so that a fresh
-    clone reports from `results/` with no training."""
+def import_results(manifest: Manifest, cfg: DictConfig, sets=None) -> None:
+    """The shipped records under `report.results` (`results/<dataset>/...`) of the fold runs the manifest's
+    table wants (of its `sets`; None: all), imported into the runs' store (idempotent: records already there
+    are skipped), so that a fresh clone reports from `results/` with no training. Only those: a table of one
+    study imports its few hundred records, not every record of the dataset."""
     from meshseg.results import import_records
     from meshseg.tracking import Tracker
 
@@ -44,11 +45,12 @@ def import_results(manifest: Manifest, cfg: DictConfig) -> None:
     if not configs:
         return
     datasets = {c.dataset._target_.rsplit(".", 1)[1].lower() for c in configs}  # PSB -> psb
+    hashes = fold_hashes(manifest, run_overrides(cfg), sets)
     t = configs[0].tracking
     tracker = Tracker(t.uri, t.experiment, t.artifact_dir)
     for name in sorted(datasets):
         if (Path(root) / name).is_dir():
-            rep = import_records(tracker, Path(root) / name)
+            rep = import_records(tracker, Path(root) / name, hashes)
             if rep.imported or rep.refused:
                 log.info("results from %s/%s: %s", root, name, rep.summary())
             for path, why in rep.refused:
@@ -59,7 +61,7 @@ def build(manifest: Manifest, cfg: DictConfig) -> Table:
     """The manifest's table from the runs, with the app config's run overrides and `report.*` settings."""
     s = cfg.report
     manifest, sets, paired = requested(manifest, s)
-    import_results(manifest, cfg)
+    import_results(manifest, cfg, sets)
     table = collect(manifest, run_overrides(cfg), metric=s.metric, sets=sets, paired=paired, boot=bootstrap(s))
     # the settings that decide which runs a table lacks go into its `meshseg.reproduce` command
     settings = ()

@@ -335,6 +335,18 @@ def collect(
     return _blocks(_table(manifest, overrides, metric, sets, boot, _from_stores), paired, boot)
 
 
+def fold_hashes(manifest: Manifest, overrides=(), sets=None) -> set[str]:
+    """The config hashes of the fold runs the table of `manifest` (its run columns, the chosen `sets`) wants,
+    found without reading a store: what a report imports of the shipped records."""
+    runs = [c.key for c in manifest.columns if c.overrides is not None and c.predictions is None]
+    if not runs:
+        return set()
+    manifest, keep = manifest.only_columns(runs), _kept_sets(manifest, sets)
+    planner = _Planner(manifest, overrides)
+    chosen = [(g, [s for s in g.sets if keep is None or s.name in keep or s.category in keep]) for g in manifest.groups]
+    return {h for g, ss in chosen if ss for row in planner.plans(g, ss) for p in row for h in p.hashes}
+
+
 def collect_records(
     root, manifest: Manifest, overrides=(), *, metric: str = "acc", sets=None, boot: Bootstrap | None = None
 ) -> Table:
