@@ -3,7 +3,7 @@
     python -m meshseg.results export [tracking.uri=...] [out=results]
     python -m meshseg.results import [dir=results] [tracking.uri=...]
     python -m meshseg.results verify [dir=results] [where=TAG=VALUE,...] [n=N] [seed=0] [tol=0.005] [attach=false]
-                                     [scratch=PATH] [out=reports/verify]
+                                     [add=false] [scratch=PATH] [out=reports/verify]
 
 MLflow is the system of record while running; `results/` is the one that ships (DESIGN "Tracking
 contract"). A record holds what the report and `reproduce` need: the run's tags (config hash, fold, data
