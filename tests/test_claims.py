@@ -106,6 +106,16 @@ def test_seeds_that_agree_give_the_one_seed_interval_and_seeds_that_disagree_wid
     assert width(apart.ci) > 2 * width(one.ci)  # one seed's +3 or the other's: a draw of seeds moves it 1.5
 
 
+def test_the_brief_table_says_how_many_seeds_each_verdict_rests_on():
+    """The README's table: 2 where both columns ran at two seeds, — for a claim with a column not yet run."""
+    cf = ClaimsFile("claims", "C", "rule", (), (claim(),), (), 1.0, 2.0, {}, Path("c.yaml"))
+    t = table({"s1": noisy(1.0), "s2": noisy(0.8)})
+    assert brief_table(build_report(cf, {"t": reshaped(t, folds=5, seeds=2)})).splitlines()[2].endswith(" | 2 |")
+    pending = table({"s1": noisy(1.0), "s2": noisy(0.8)}, missing={"s1": 1})
+    line = brief_table(build_report(cf, {"t": pending})).splitlines()[2]
+    assert line.endswith("| not yet run (1 runs missing) | — |")
+
+
 def test_differences_centred_on_zero_are_inconclusive():
     t = table({"s1": noisy(0.0, 40), "s2": noisy(0.0, 40)})
     v = judge(claim(), t)
@@ -193,7 +203,7 @@ def test_build_report_judges_tables_too():
     assert report.tables[0].verdict == "not yet run"  # the hand-made table has no average row
     assert summary_table(report).splitlines()[2].startswith("| c | a beats b (§4) | +2.00 |")
     v = report.verdicts[0]
-    assert brief_table(report).splitlines()[2] == f"| c | a > b (§4) | +2.00 | {v.reproduced_text} | reproduced |"
+    assert brief_table(report).splitlines()[2] == f"| c | a > b (§4) | +2.00 | {v.reproduced_text} | reproduced | 1 |"
     for test, kw, text in (
         ("every_set", {"sets": ("s1",)}, "a > b on every set, s1 (§4)"),
         ("equal", {"margin": 0.5}, "a ≈ b (±0.5) (§4)"),
@@ -214,7 +224,8 @@ def test_the_readme_claims_table_matches_reports_claims_csv():
     shipped = list(csv.DictReader((REPO / "reports/claims/claims.csv").open()))
     assert [r[0].strip("| ") for r in rows] == [s["id"] for s in shipped]
     for r, s in zip(rows, shipped):
-        assert r[4].rstrip(" |").split(" (")[0].split(";")[0] == s["verdict"], (r, s)
+        assert r[4].split(" (")[0].split(";")[0] == s["verdict"], (r, s)
+        assert r[5].rstrip(" |") == (s["seeds"] or "—"), (r, s)  # which verdicts rest on one seed
         if s["reproduced"]:
             assert r[3].startswith(f"{float(s['reproduced']):+.2f} ["), (r, s)
         else:

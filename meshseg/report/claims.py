@@ -374,11 +374,13 @@ def _brief(claim: Claim) -> str:
 
 
 def brief_table(report: ClaimsReport) -> str:
-    """The claims table in brief (the README's "Does the paper reproduce?"): each claim as its comparison."""
-    lines = ["| # | claim (a > b) | published | reproduced [95 % CI] | verdict |", "|---|---|---|---|---|"]
+    """The claims table in brief (the README's "Does the paper reproduce?"): each claim as its comparison, and how
+    many training seeds its verdict rests on (the fewest of its columns; — where nothing ran)."""
+    lines = ["| # | claim (a > b) | published | reproduced [95 % CI] | verdict | seeds |", "|---|---|---|---|---|---|"]
     for v in report.verdicts:
         lines.append(
-            f"| {v.claim.id} | {_brief(v.claim)} | {_num(v.published)} | {v.reproduced_text} | {v.verdict_text} |"
+            f"| {v.claim.id} | {_brief(v.claim)} | {_num(v.published)} | {v.reproduced_text} | {v.verdict_text} | "
+            f"{v.seeds or '—'} |"
         )
     return "\n".join(lines)
 
