@@ -76,3 +76,28 @@ def test_records_give_the_wanted_runs_in_the_wanted_order_and_a_bad_one_is_no_ru
         meshes = records_mesh_table(tmp_path, wanted)
     assert list(meshes["config_hash"]) == [hashes[0], hashes[0]]
     assert f"copy.json: config hash {hashes[1]} is also that of {record_path(tmp_path, records[1])}" in caplog.text
+
+
+def test_a_store_read_in_place_and_searched_once_gives_the_same_table(smoke_store, cache_dir, monkeypatch):
+    from meshseg.report import runs
+
+    manifest = load_manifest(REPO / "experiments/synthetic.yaml")
+    boot = Bootstrap(300)
+    for k, v in smoke_env(smoke_store.parent, cache_dir).items():
+        monkeypatch.setenv(k, v)
+    searches, paths = [], []
+    search, artifact = runs._search_finished, runs._artifact
+    monkeypatch.setattr(runs, "_search_finished", lambda *a: searches.append(a) or search(*a))
+    monkeypatch.setattr(runs, "_artifact", lambda c, run, name, tmp: c.download_artifacts(run.info.run_id, name, tmp))
+    downloaded = collect(manifest, SMOKE, boot=boot)  # every per-mesh table copied out of the store (the old way)
+    monkeypatch.setattr(runs, "_artifact", lambda *a: paths.append(artifact(*a)) or paths[-1])
+    with runs.one_search_per_store():
+        first, second = collect(manifest, SMOKE, boot=boot), collect(manifest, SMOKE, boot=boot)
+    assert len(searches) == 2  # one for the first table, one for both tables within
+    assert len(paths) == 2 * 18  # 3 columns x 3 sets x 2 folds a table ...
+    assert all(p.startswith(f"{smoke_store}/artifacts/") for p in paths)  # ... each read where the store keeps it
+    for table in (first, second):
+        assert table.meshes.equals(downloaded.meshes)
+        assert markdown(table) == markdown(downloaded)
+    collect(manifest, SMOKE, boot=boot)
+    assert len(searches) == 3  # outside it, every table searches again

@@ -155,15 +155,24 @@ def paired_differences(meshes: pd.DataFrame, row: Row, a: str, b: str, metric: s
 
 def fold_arrays(meshes: pd.DataFrame, row: Row, key: str, metric: str) -> dict[int, pd.DataFrame]:
     """The cell's per-mesh values by fold, each a (seeds x test meshes) frame (rows: the training seeds its
-    runs have, `seed` 0 where the frame names none; columns: mesh ids). `metric` "gain" is refined minus raw."""
+    runs have, `seed` 0 where the frame names none, ascending; columns: mesh ids, sorted; NaN where a seed lacks
+    a mesh). `metric` "gain" is refined minus raw."""
     own = cell_meshes(meshes, row, key)
-    values = own["acc"] - own["acc_raw"] if metric == "gain" else own[metric]
-    seeds = own["seed"] if "seed" in own else pd.Series(0, index=own.index)
-    frame = pd.DataFrame({"fold": own["fold"], "seed": seeds, "mesh": own["mesh"], "v": values})
-    return {
-        int(f): part.pivot_table(index="seed", columns="mesh", values="v", aggfunc="mean").sort_index(axis=1)
-        for f, part in frame.groupby("fold", sort=True)
-    }
+    values = (own["acc"] - own["acc_raw"] if metric == "gain" else own[metric]).to_numpy(np.float64)
+    seeds = own["seed"].to_numpy() if "seed" in own else np.zeros(len(own), int)
+    # plain dicts, not a pivot per fold: a leave-one-out table asks for thousands of these
+    cells: dict[int, dict[tuple[int, str], list[float]]] = {}
+    for f, s, m, v in zip(own["fold"].to_numpy(), seeds, own["mesh"].to_numpy(), values):
+        cells.setdefault(int(f), {}).setdefault((int(s), m), []).append(v)
+    out = {}
+    for f in sorted(cells):
+        by = cells[f]
+        rows, cols = sorted({s for s, _ in by}), sorted({m for _, m in by})
+        grid = np.full((len(rows), len(cols)), np.nan)
+        for (s, m), vs in by.items():
+            grid[rows.index(s), cols.index(m)] = np.mean(vs)
+        out[f] = pd.DataFrame(grid, index=pd.Index(rows, name="seed"), columns=pd.Index(cols, name="mesh"))
+    return out
 
 
 def nested_units(meshes: pd.DataFrame, row: Row, a: str, b: str | None, metric: str, offset: float = 0.0):

@@ -479,26 +479,24 @@ def collect_tables(claims: ClaimsFile, cfg) -> dict[str, Table]:
     from meshseg.report.config import run_overrides
     from meshseg.report.manifest import load_manifest
     from meshseg.report.publish import bootstrap, import_results
+    from meshseg.report.runs import one_search_per_store
     from meshseg.report.table import collect
 
     s = cfg.report
     overrides = [*claims.overrides, *run_overrides(cfg)]
     judged = {t.table for t in claims.tables}
-    tables = {}
+    manifests = {}
     for name, keys in claims.tables_needed().items():
         manifest = load_manifest(claims.path.parent / f"{name}.yaml")
         if name in judged:  # its verdict reads every run column's average
             keys = keys | {c.key for c in manifest.columns if c.overrides is not None}
-        manifest = manifest.only_columns([c.key for c in manifest.columns if c.key in keys])
-        import_results(manifest, cfg)
-        tables[name] = collect(
-            manifest,
-            overrides,
-            metric=s.metric,
-            paired=[],  # the claims pair columns themselves
-            boot=bootstrap(s),
-        )
-    return tables
+        manifests[name] = manifest.only_columns([c.key for c in manifest.columns if c.key in keys])
+        import_results(manifests[name], cfg)
+    with one_search_per_store():  # every import is done: the stores no longer change under the tables
+        return {
+            name: collect(manifest, overrides, metric=s.metric, paired=[], boot=bootstrap(s))  # claims pair themselves
+            for name, manifest in manifests.items()
+        }
 
 
 def claims_from_config(cfg) -> tuple[ClaimsReport, list[Path]]:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import tempfile
+from contextlib import contextmanager
 from pathlib import Path
 
 import pandas as pd
@@ -24,8 +25,34 @@ RUN_COUNTS = ("n_train_samples", "n_train_distinct", "n_epochs")
 RUN_COLUMNS = ("config_hash", "run_id", "seconds", "counts", "line", "mesh", *FoldRecord.MESH_METRICS)
 
 
+#: (uri, experiment) -> finished_by_hash's answer, while one_search_per_store holds
+_searched: dict[tuple[str, str], dict[str, object]] | None = None
+
+
+@contextmanager
+def one_search_per_store():
+    """Within it, each store's finished runs are searched once, however many tables read them: for a reader
+    of several tables from a store nothing writes to meanwhile (the claims report; a search of a store of a
+    few thousand runs takes tens of seconds)."""
+    global _searched
+    outer, _searched = _searched, {} if _searched is None else _searched
+    try:
+        yield
+    finally:
+        _searched = outer
+
+
 def finished_by_hash(uri: str, experiment: str) -> dict[str, object]:
     """The FINISHED runs of the store by config hash, the newest of each."""
+    if _searched is not None:
+        key = (uri, experiment)
+        if key not in _searched:
+            _searched[key] = _search_finished(uri, experiment)
+        return _searched[key]
+    return _search_finished(uri, experiment)
+
+
+def _search_finished(uri: str, experiment: str) -> dict[str, object]:
     by_hash: dict[str, object] = {}
     for r in search_runs(uri, experiment, "attributes.status = 'FINISHED'"):
         h = r.data.tags.get("config_hash")
@@ -39,13 +66,26 @@ def _mesh_accuracies(client, run) -> list[tuple[str, dict[str, float]]]:
     from its per-mesh table (FoldRecord.PER_MESH)."""
     try:
         with tempfile.TemporaryDirectory() as tmp:
-            rows = FoldRecord.read_per_mesh(client.download_artifacts(run.info.run_id, FoldRecord.PER_MESH, tmp))
+            rows = FoldRecord.read_per_mesh(_artifact(client, run, FoldRecord.PER_MESH, tmp))
             return [(row["mesh"], _percent(row)) for row in rows]
     except Exception as e:  # a FINISHED run without a readable table is damage in the store, not a missing fold
         raise TrackingError(
             f"run {run.info.run_id} ({run.info.run_name}): cannot read {'/'.join(FoldRecord.MESH_METRICS)} from "
             f"{FoldRecord.PER_MESH}: {type(e).__name__}: {e}"
         ) from None
+
+
+def _artifact(client, run, name: str, tmp: str) -> str:
+    """A local path to the run's artifact `name`: the file itself where the store keeps artifacts on this
+    machine (a download copies it, ~50 ms a run: over a minute for a leave-one-out table), else a download."""
+    from mlflow.utils.file_utils import local_file_uri_to_path
+
+    uri = run.info.artifact_uri
+    if uri.startswith("file:") or "://" not in uri:
+        path = Path(local_file_uri_to_path(uri)) / name
+        if path.is_file():
+            return str(path)
+    return client.download_artifacts(run.info.run_id, name, tmp)
 
 
 def _run_rows(client, run) -> list[dict]:
