@@ -30,6 +30,11 @@ def seconds(fn) -> float:
     return time.perf_counter() - t
 
 
+def download_artifact(client, run, name: str, tmp: str) -> str:
+    """The way before: the artifact copied out of the store into `tmp`."""
+    return client.download_artifacts(run.info.run_id, name, tmp)
+
+
 def main() -> None:
     from mlflow import MlflowClient
 
@@ -53,11 +58,11 @@ def main() -> None:
     client = MlflowClient(tracking_uri=uri)
     in_place, download = [], []
     for run in runs:  # interleaved, so that both ways see the same load
-        with tempfile.TemporaryDirectory() as tmp:
-            in_place.append(seconds(lambda: FoldRecord.read_per_mesh(_artifact(client, run, FoldRecord.PER_MESH, tmp))))
-        with tempfile.TemporaryDirectory() as tmp:
-            get = lambda: client.download_artifacts(run.info.run_id, FoldRecord.PER_MESH, tmp)
-            download.append(seconds(lambda: FoldRecord.read_per_mesh(get())))
+        for way, times in ((_artifact, in_place), (download_artifact, download)):
+            with tempfile.TemporaryDirectory() as tmp:
+                t = time.perf_counter()
+                FoldRecord.read_per_mesh(way(client, run, FoldRecord.PER_MESH, tmp))
+                times.append(time.perf_counter() - t)
     out = {
         "manifest": Path(args.manifest).name,
         "store_runs": len(by_hash),
