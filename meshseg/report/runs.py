@@ -78,10 +78,12 @@ def _mesh_accuracies(client, run) -> list[tuple[str, dict[str, float]]]:
 def _artifact(client, run, name: str, tmp: str) -> str:
     """A local path to the run's artifact `name`: the file itself where the store keeps artifacts on this
     machine (a download copies it, ~50 ms a run: over a minute for a leave-one-out table), else a download."""
+    from urllib.parse import urlparse
+
     from mlflow.utils.file_utils import local_file_uri_to_path
 
     uri = run.info.artifact_uri
-    if uri.startswith("file:") or "://" not in uri:
+    if urlparse(uri).scheme in ("file", ""):  # not a server's (mlflow-artifacts:, http:, s3:, ...)
         path = Path(local_file_uri_to_path(uri)) / name
         if path.is_file():
             return str(path)
