@@ -162,7 +162,9 @@ def test_schema(path):
             assert {"key", "label", "predictions"} <= set(c) <= {"key", "label", "predictions", "sets"}, c
             assert set(c["predictions"]) == {"path", "format"}, c
             continue
-        assert {"key", "label", "overrides"} <= set(c) <= {"key", "label", "overrides", "sets"}, c
+        assert {"key", "label", "overrides"} <= set(c) <= {"key", "label", "overrides", "sets", "seeds"}, c
+        seeds = c.get("seeds", [0])  # training seeds (issue 51): distinct, seed 0 (the shipped runs) among them
+        assert 0 in seeds and len(set(seeds)) == len(seeds) and all(isinstance(k, int) and k >= 0 for k in seeds), c
         assert isinstance(c["key"], str) and isinstance(c["label"], str)
         check_overrides(c["overrides"], nullable=True)
     n = len(cols)
