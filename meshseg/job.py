@@ -106,6 +106,7 @@ class FoldJob:
             budget=run.budget.name,
             config_hash=chash,
             data_hash=dataset.data_hash,
+            seed=run.seed,
         )
         return cls(
             key=key,
@@ -122,7 +123,7 @@ class FoldJob:
             checkpoints=checkpoint_dir(run, chash),
             tracking=config["tracking"],
             config=config,
-            tags=FoldRecord.tags(key, fold, seed=run.seed, accelerator=run.trainer.accelerator, overrides=overrides),
+            tags=FoldRecord.tags(key, fold, accelerator=run.trainer.accelerator, overrides=overrides),
         )
 
 

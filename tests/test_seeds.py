@@ -15,6 +15,7 @@ from meshseg.report.claims_file import Claim
 from meshseg.report.manifest import load_manifest
 from meshseg.report.table import collect
 from meshseg.reproduce import missing_cells, reproduce
+from meshseg.tracking import search_runs
 
 RF = ["model=rf"]
 
@@ -84,3 +85,6 @@ def test_a_column_at_two_seeds_is_the_mean_over_them_and_a_missing_seed_is_not_y
     assert avg.seed_values == pytest.approx(table.rows[0].cells[2].seed_values)  # the mean over its one set
     verdict = judge(Claim("s", "t", "", "seeded", "rf01", "rf"), table)
     assert verdict.seeds == 1 and verdict.verdict != "not yet run"  # rf has one seed: the fewest
+    runs = search_runs(f"sqlite:///{store}/mlruns/mlflow.db", "meshseg")
+    names = {r.data.tags["seed"]: r.info.run_name for r in runs}
+    assert names["1"].endswith("· seed 1") and "seed" not in names["0"]  # the UI tells a fold's seeds apart

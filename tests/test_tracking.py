@@ -381,8 +381,10 @@ def test_search_runs_reads_every_page_and_never_creates_an_experiment(tmp_path, 
 def test_a_run_key_names_the_run_and_reads_back_from_its_tags():
     key = RunKey("psb", "Glasses", "cnn1d", 3, "f800", "5fold", 2, "graphcut_agd", "cpu", "abc", "d")
     assert key.name == "Glasses f2 · cnn1d 3B f800 · 5fold · cpu"
-    tags = {k: str(v) for k, v in vars(key).items()} | {"git_sha": "x", "seed": "0"}
-    assert RunKey.from_tags(tags) == key
+    tags = {k: str(v) for k, v in vars(key).items()} | {"git_sha": "x"}
+    assert RunKey.from_tags(tags) == key and key.seed == 0
+    again = RunKey.from_tags(tags | {"seed": "2"})  # the same fold at another training seed
+    assert again.seed == 2 and again.name == "Glasses f2 · cnn1d 3B f800 · 5fold · cpu · seed 2"
     assert set(vars(key)) == set(FoldRecord.TAGS) - {"git_sha"}  # the key is the tags a report selects by
 
 

@@ -41,19 +41,22 @@ class RunKey:
     budget: str
     config_hash: str
     data_hash: str
+    seed: int = 0  # the training seed (issue 51 runs folds at several)
 
     @classmethod
     def from_tags(cls, tags: Mapping) -> RunKey:
         """The key of a stored run or record, from its tags (strings)."""
         values = {f.name: tags[f.name] for f in dataclasses.fields(cls)}
-        return cls(**{**values, "branches": int(values["branches"]), "fold": int(values["fold"])})
+        return cls(**{**values, **{k: int(values[k]) for k in ("branches", "fold", "seed")}})
 
     @property
     def name(self) -> str:
         """The run's name, what differs between a sweep's runs first (the UI's table cuts names short):
-        `Glasses f2 · cnn1d 3B f800 · 5fold · cpu`."""
+        `Glasses f2 · cnn1d 3B f800 · 5fold · cpu`, and `· seed 1` where the training seed is not 0 (so that a
+        fold's runs at several seeds differ in name as in identity)."""
         k = self
-        return f"{k.category} f{k.fold} · {k.model} {k.branches}B {k.features} · {k.split} · {k.budget}"
+        seed = f" · seed {k.seed}" if k.seed else ""
+        return f"{k.category} f{k.fold} · {k.model} {k.branches}B {k.features} · {k.split} · {k.budget}{seed}"
 
 
 class FoldRecord:
@@ -73,6 +76,7 @@ class FoldRecord:
         "config_hash",
         "git_sha",
         "data_hash",
+        "seed",
     )
     #: the two accuracies every fold logs (area-weighted mean over the test meshes), after and before refinement.
     #: Metrics are named by role: train/* (per epoch, from Lightning), test/*, time/<phase>_s, speed/*,
@@ -97,10 +101,10 @@ class FoldRecord:
     MODEL = "model"
 
     @staticmethod
-    def tags(key: RunKey, fold, *, seed: int, accelerator: str, overrides=None) -> dict:
-        """The run's tags: TAGS (what the report selects by), the seed and accelerator, and provenance: the
-        fold's mesh ids (`fold`: a `meshseg.data.splits.Fold`) and the Hydra overrides the run was launched
-        with (so that `meshseg.results` can check a shipped record against the code), the machine, the
+    def tags(key: RunKey, fold, *, accelerator: str, overrides=None) -> dict:
+        """The run's tags: TAGS (what the report selects by, the training seed among them), the accelerator, and
+        provenance: the fold's mesh ids (`fold`: a `meshseg.data.splits.Fold`) and the Hydra overrides the run was
+        launched with (so that `meshseg.results` can check a shipped record against the code), the machine, the
         package versions, and the SLURM job when one runs it (so a stuck run can be found and `scancel`led)."""
         k = key
         job = slurm_job()
@@ -117,7 +121,7 @@ class FoldRecord:
             "config_hash": k.config_hash,
             "git_sha": git_sha(),
             "data_hash": k.data_hash,
-            "seed": seed,
+            "seed": k.seed,
             "accelerator": accelerator,
             "fold_ids": json.dumps({"train": list(fold.train), "test": list(fold.test)}),
             **({"overrides": json.dumps(list(overrides))} if overrides is not None else {}),
