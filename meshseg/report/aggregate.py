@@ -168,9 +168,10 @@ def fold_arrays(meshes: pd.DataFrame, row: Row, key: str, metric: str) -> dict[i
     for f in sorted(cells):
         by = cells[f]
         rows, cols = sorted({s for s, _ in by}), sorted({m for _, m in by})
+        at_row, at_col = {s: i for i, s in enumerate(rows)}, {m: j for j, m in enumerate(cols)}
         grid = np.full((len(rows), len(cols)), np.nan)
         for (s, m), vs in by.items():
-            grid[rows.index(s), cols.index(m)] = np.mean(vs)
+            grid[at_row[s], at_col[m]] = np.mean(vs)
         out[f] = pd.DataFrame(grid, index=pd.Index(rows, name="seed"), columns=pd.Index(cols, name="mesh"))
     return out
 
