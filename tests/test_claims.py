@@ -9,6 +9,7 @@ import pandas as pd
 import pytest
 
 from meshseg.errors import ManifestError
+from meshseg.report.aggregate import nested_stats
 from meshseg.report.cells import Cell, Row, Table
 from meshseg.report.claims import SetDiff, brief_table, build_report, decide, judge, summary_table
 from meshseg.report.claims_file import Claim, ClaimsFile, TableSpec, load_claims
@@ -104,6 +105,19 @@ def test_seeds_that_agree_give_the_one_seed_interval_and_seeds_that_disagree_wid
     apart = judge(claim(), reshaped(t, folds=5, seeds=2, shift=3.0))
     assert apart.value == pytest.approx(one.value + 1.5)  # the mean over seeds
     assert width(apart.ci) > 2 * width(one.ci)  # one seed's +3 or the other's: a draw of seeds moves it 1.5
+
+
+def test_a_seed_run_in_one_fold_only_is_resampled_and_if_it_agrees_leaves_the_interval_as_it_is():
+    """While the seed repeats run, a column has seed 1 in some folds only: its partial paired block (fold 0 at
+    two seeds, the others at one) still gets replicates; a second seed equal to the first moves none, one 5 points
+    up moves the mean by its share."""
+    folds = [(RNG.uniform(80, 95, (1, 4)), RNG.uniform(80, 95, (1, 4))) for _ in range(5)]
+    half = [(np.vstack([a, a]) if f == 0 else a, b) for f, (a, b) in enumerate(folds)]
+    one = nested_stats(folds, 500, np.random.default_rng(1))
+    assert nested_stats(half, 500, np.random.default_rng(1)) == pytest.approx(one)
+    apart = [(np.vstack([a, a + 5.0]) if f == 0 else a, b) for f, (a, b) in enumerate(folds)]
+    moved = nested_stats(apart, 500, np.random.default_rng(1)) - one  # fold 0: 4 of 20 meshes, +2.5 on average
+    assert moved.mean() == pytest.approx(0.5, abs=0.15) and moved.std() > 0
 
 
 def test_the_brief_table_says_how_many_seeds_each_verdict_rests_on():

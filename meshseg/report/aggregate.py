@@ -51,10 +51,18 @@ def nested_stats(
         draws = seed_rng.integers(0, s, size=(n_boot, s))
         return np.stack([(draws == i).sum(axis=1) for i in range(s)], axis=1) / s
 
-    wa = seed_weights(folds[0][0].shape[0])
-    b0 = folds[0][1]
-    wb = None if b0 is None else seed_weights(b0.shape[0])
-    per_fold = [wa @ a - (0 if b is None else wb @ b) for a, b in folds]  # (n_boot, meshes) each
+    # one draw per column and seed count: a partial cell's folds may hold fewer seeds than its others
+    drawn: dict[tuple[str, int], np.ndarray] = {}
+
+    def mean_over_seeds(side: str, x: np.ndarray) -> np.ndarray:
+        key = (side, x.shape[0])
+        if key not in drawn:
+            drawn[key] = seed_weights(x.shape[0])
+        return drawn[key] @ x
+
+    per_fold = [
+        mean_over_seeds("a", a) - (0 if b is None else mean_over_seeds("b", b)) for a, b in folds
+    ]  # (n_boot, meshes) each
     picks = fold_rng.integers(0, len(folds), size=(n_boot, len(folds)))
     total, count = np.zeros(n_boot), np.zeros(n_boot)
     for j in range(len(folds)):
