@@ -13,6 +13,7 @@ key), so a cell's interval is the same whichever other rows or columns the table
 
 from __future__ import annotations
 
+import functools
 import hashlib
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -47,22 +48,14 @@ def nested_stats(
     mesh-level bootstrap, and seeds that agree leave it as it is (the draws use their own streams)."""
     seed_rng, fold_rng, mesh_rng = rng.spawn(3)
 
-    def seed_weights(s: int) -> np.ndarray:  # (n_boot, s): how often each seed is drawn, over s
+    @functools.cache  # one draw per column (a, b) and seed count: a partial cell's folds may hold fewer seeds
+    def seed_weights(side: str, s: int) -> np.ndarray:  # (n_boot, s): how often each seed is drawn, over s
         draws = seed_rng.integers(0, s, size=(n_boot, s))
         return np.stack([(draws == i).sum(axis=1) for i in range(s)], axis=1) / s
 
-    # one draw per column and seed count: a partial cell's folds may hold fewer seeds than its others
-    drawn: dict[tuple[str, int], np.ndarray] = {}
-
-    def mean_over_seeds(side: str, x: np.ndarray) -> np.ndarray:
-        key = (side, x.shape[0])
-        if key not in drawn:
-            drawn[key] = seed_weights(x.shape[0])
-        return drawn[key] @ x
-
-    per_fold = [
-        mean_over_seeds("a", a) - (0 if b is None else mean_over_seeds("b", b)) for a, b in folds
-    ]  # (n_boot, meshes) each
+    per_fold = [  # (n_boot, meshes) each
+        seed_weights("a", len(a)) @ a - (0 if b is None else seed_weights("b", len(b)) @ b) for a, b in folds
+    ]
     picks = fold_rng.integers(0, len(folds), size=(n_boot, len(folds)))
     total, count = np.zeros(n_boot), np.zeros(n_boot)
     for j in range(len(folds)):
