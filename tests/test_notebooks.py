@@ -73,6 +73,16 @@ def test_compare_published_shows_table2_as_the_report_does(kernel_env):
     assert text.count("image/png") >= 3  # the report's figure, Δ per set, the paired blocks
 
 
+def test_the_committed_notebooks_show_the_committed_reports():
+    """The notebooks are committed executed (scripts/execute_notebooks.py): what they show as committed is
+    today's results/, so a change of the shipped results that leaves them unexecuted fails here."""
+    read = lambda name: outputs(nbformat.read(NOTEBOOKS / name, as_version=4))
+    cells = report_cells("table2_psb_5fold")
+    assert len(cells) >= 7 * 17  # Table 2's seven columns: 16 sets and the average each
+    assert [c for c in cells if c not in read("compare_published.ipynb")] == []
+    assert_vase_as_reported(read("per_mesh.ipynb"))
+
+
 @pytest.mark.psb
 def test_inspect_run_shows_what_a_shipped_record_holds(kernel_env, tmp_path):
     require(PSB_ARCHIVE)
@@ -98,16 +108,21 @@ def test_inspect_run_shows_the_pictures_a_store_holds(kernel_env, smoke_store, t
     assert "confusion.png" in text and "renders/" in text and text.count("image/png") >= 4  # + 2 plots
 
 
-@pytest.mark.psb
-def test_per_mesh_sets_methods_side_by_side_on_vase(kernel_env, tmp_path):
-    require(PSB_ARCHIVE)
-    text = outputs(execute("per_mesh.ipynb", tracking_uri=f"sqlite:///{tmp_path}/none/mlflow.db"))
+def assert_vase_as_reported(text: str) -> None:
+    """per_mesh's output holds every method of Vase's rows in Tables 2 and 1, each at its report's value."""
     # both reports have a ToG15 column: one method per report and column, not per label
     vase = [*report_row("table2_psb_5fold", "Vase").items(), *report_row("table1_psb_loo", "Vase").items()]
     assert {"1D CNN 3B", "ToG15", "Kalogerakis 2010"} <= {label for label, _ in vase}
     assert f"20 meshes x {len(vase)} methods" in text
     for label, value in vase:  # the methods' cells as the reports have them: "1D CNN 3B (5-fold)  81.84"
         assert re.search(rf"^{re.escape(label)} \([^)\n]*\)\s+{value}\s", text, re.M), (label, value)
+
+
+@pytest.mark.psb
+def test_per_mesh_sets_methods_side_by_side_on_vase(kernel_env, tmp_path):
+    require(PSB_ARCHIVE)
+    text = outputs(execute("per_mesh.ipynb", tracking_uri=f"sqlite:///{tmp_path}/none/mlflow.db"))
+    assert_vase_as_reported(text)
     assert "hard for all" in text and "Not drawn: tracking.uri=" in text  # no store here: said plainly
     assert text.count("image/png") >= 2  # the per-mesh plot, Kalogerakis 2010's labelling from disk
 
