@@ -44,6 +44,27 @@ def test_a_wide_radius_averages_the_whole_component_and_a_small_one_keeps_the_fa
     np.testing.assert_allclose(narrow, P, atol=1e-6)
 
 
+# three faces of areas 1/2, 3/2 and 1 (worked out from the cross products), joined through edges 0-1 and 1-2
+FAN_V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [2, 2, 0], [0.5, -2, 0]], float)
+FAN_F = np.array([[0, 1, 2], [1, 3, 2], [1, 0, 4]])
+
+
+def test_shares_and_a_wide_radius_weigh_faces_by_area():
+    P = np.array([[1.0, 0.0], [0.0, 1.0], [0.5, 0.5]])
+    # area-weighted: class 0 (1/2 + 1/2) / 3 = 1/3, class 1 (3/2 + 1/2) / 3 = 2/3 (a plain mean: 1/2, 1/2)
+    got = label_context(FAN_V, FAN_F, P, LabelContext(radii=(1e4,), share=True, distance=False))
+    np.testing.assert_allclose(got, np.tile([1 / 3, 2 / 3, 1 / 3, 2 / 3], (3, 1)), atol=1e-6)
+
+
+def test_moving_and_scaling_a_mesh_changes_no_context_feature():
+    P = np.array([[0.7, 0.2, 0.1], [0.1, 0.3, 0.6], [0.2, 0.7, 0.1]])
+    settings = LabelContext(radii=(0.05, 0.4), share=True, distance=True, distance_cap=50.0)
+    here = label_context(FAN_V, FAN_F, P, settings)
+    there = label_context(FAN_V * 7 + [3, -5, 11], FAN_F, P, settings)
+    assert here[:, 6:9].max() > 0 and 0 < here[:, -3:].max() < 50  # every group says something here
+    np.testing.assert_allclose(there, here, rtol=1e-5, atol=1e-7)
+
+
 def test_a_class_in_another_component_is_at_the_cap():
     # the square and a second square far away, not joined: distances never cross between them
     V = np.vstack([SQUARE_V, SQUARE_V + [10, 0, 0]])

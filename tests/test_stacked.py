@@ -1,6 +1,7 @@
 """model=stacked (issue 53, not in the paper): stage 1 out of fold on the training meshes, context features of its
 probabilities, stage 2 on [own inputs, context]. Five small synthetic figures, budget=smoke, as test_gbdt."""
 
+import copy
 import dataclasses
 import json
 
@@ -12,6 +13,7 @@ from test_run import compose_run
 from meshseg.data.datasets import build_dataset
 from meshseg.data.splits import Fold
 from meshseg.errors import ConfigError
+from meshseg.features.label_context import MeshContext
 from meshseg.metrics import area_weighted_accuracy
 from meshseg.training.context import TrainContext
 from meshseg.training.fit import fit_predict
@@ -34,7 +36,7 @@ def fitted(source):  # noqa: F811
     return fit(source)
 
 
-def test_stage_one_never_predicts_a_mesh_it_trained_on_and_never_sees_the_test_mesh(fitted, monkeypatch):
+def test_stage_one_never_predicts_a_mesh_it_trained_on_and_never_sees_the_test_mesh(fitted):
     preds, fitter = fitted
     assert len(fitter.inner_) == 2 and all(isinstance(f, GbdtFitter) for f in fitter.inner_)
     predicted = []
@@ -48,7 +50,50 @@ def test_stage_one_never_predicts_a_mesh_it_trained_on_and_never_sees_the_test_m
         assert set(f.held_out_) <= set(trained_on)  # its early-stopping meshes are among its training meshes
 
 
-def test_the_rows_of_an_inner_fit_are_those_of_its_meshes(source):  # noqa: F811
+def test_no_inner_model_labels_a_mesh_it_trained_on(source, monkeypatch):  # noqa: F811
+    """Spy on every inner stage-1 model: the meshes its fit got, and each mesh it labels (during the fit, its
+    held-out group; then the test mesh, once per inner model under test_stage1=each). None is one it saw."""
+    trained, labelled = {}, []
+    real_fit, real_predict = GbdtFitter.fit, GbdtFitter.predict_mesh
+
+    def spy_fit(self, train):
+        trained[id(self)] = set(train.mesh_ids)
+        return real_fit(self, train)
+
+    def spy_predict(self, mesh, X):
+        labelled.append((id(self), mesh.id))
+        return real_predict(self, mesh, X)
+
+    monkeypatch.setattr(GbdtFitter, "fit", spy_fit)
+    monkeypatch.setattr(GbdtFitter, "predict_mesh", spy_predict)
+    fit(source)
+    assert len(trained) == 2 and all(mesh not in trained[model] for model, mesh in labelled)
+    assert sorted(mesh for _, mesh in labelled) == sorted([*TRAIN, "0", "0"])
+    assert {model for model, mesh in labelled if mesh == "0"} == set(trained)  # each inner model, once
+
+
+def test_a_test_mesh_reaches_stage_two_through_each_inner_labelling(fitted, source):  # noqa: F811
+    """test_stage1=each: stage 2 on the context of each inner model's labelling, its probabilities averaged;
+    mean: stage 2 once, on the context of the inner models' mean probabilities. Worked out from the parts."""
+    _, fitter = fitted
+    mesh, scales = source.load("0")
+    X = np.stack(scales, axis=1)
+    surface = MeshContext(mesh.vertices, mesh.faces, fitter.features)
+    each = [f.predict_mesh(mesh, X) for f in fitter.inner_]
+
+    def stage2(P):
+        return fitter.trees_.predict_proba(np.concatenate([X.reshape(len(X), -1), surface.features(P)], axis=1))
+
+    by_hand = np.mean([stage2(P) for P in each], axis=0)
+    np.testing.assert_allclose(fitter.predict_mesh(mesh, X), by_hand, rtol=1e-6)
+    as_mean = copy.copy(fitter)  # the same fitted stack, read as test_stage1=mean
+    as_mean.test_stage1 = "mean"
+    once = stage2(np.mean(each, axis=0))
+    np.testing.assert_allclose(as_mean.predict_mesh(mesh, X), once, rtol=1e-6)
+    assert np.abs(once - by_hand).max() > 1e-4  # the two readings differ (a little, on this easy figure)
+
+
+def test_the_rows_of_an_inner_fit_are_those_of_its_meshes(source, monkeypatch):  # noqa: F811
     """Stage 1's inner fits get exactly the outer training rows of their meshes (spy on GbdtFitter.fit)."""
     seen = []
     real = GbdtFitter.fit
@@ -57,11 +102,8 @@ def test_the_rows_of_an_inner_fit_are_those_of_its_meshes(source):  # noqa: F811
         seen.append((train.mesh_ids, len(train.y), set(np.unique(train.mesh_index).tolist())))
         return real(self, train)
 
-    GbdtFitter.fit = spy
-    try:
-        preds, fitter = fit(source)
-    finally:
-        GbdtFitter.fit = real
+    monkeypatch.setattr(GbdtFitter, "fit", spy)
+    preds, fitter = fit(source)
     assert len(seen) == 2
     for (ids, _, index), (trained_on, _) in zip(seen, fitter.inner_meshes_):
         assert ids == trained_on and index == set(range(len(ids)))
@@ -99,6 +141,7 @@ def test_inner_groups_are_seeded_and_cover_every_mesh():
     "override, message",
     [
         ("model.inner_folds=1", "model.inner_folds=1: at least 2"),
+        ("model.test_stage1=median", r"model.test_stage1=median: one of \['each', 'mean'\]"),
         ("model.context_features.radii=[-1]", "every radius must be > 0"),
         ("model.stage2.learning_rate=0", "learning_rate"),
         ("model.stage1.trees.num_leaves=1", "num_leaves"),

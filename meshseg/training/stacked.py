@@ -11,9 +11,11 @@ boosting stage on contextual label features. Here:
 3. Stage 2, gradient-boosted trees (`stage2`: GbdtSettings) on [the face's own inputs, its context
    features], on the training faces the budget sampled.
 
-A test mesh gets the mean of the inner stage-1 models' probabilities (what stage 2 was trained on: the
-out-of-fold predictions of models fitted on (k-1)/k of the training meshes, not one refitted on all), its
-context features, then stage 2; the run's refinement follows as for every model.
+A test mesh (`test_stage1`): with `each`, every inner stage-1 model labels it, stage 2 reads the context of each
+labelling, and stage 2's k probabilities are averaged, so stage 2 sees what it was trained on: the context of one
+model fitted on (k-1)/k of the training meshes. With `mean`, stage 2 reads the context of the inner models' mean
+probabilities once, a smoother labelling than any training mesh's. Neither refits stage 1 on all the training
+meshes. The run's refinement follows as for every model.
 """
 
 from __future__ import annotations
@@ -53,8 +55,22 @@ class StackedFitter(Fitter):
 
     epochs_trained = False  # stage 2 fits once; rows drawn per epoch cannot be split by mesh
 
-    def __init__(self, stage1, inner_folds: int, context_features: dict, stage2: dict, context: TrainContext):
+    #: how a test mesh reaches stage 2: see the module doc
+    TEST_STAGE1 = ("each", "mean")
+
+    def __init__(
+        self,
+        stage1,
+        inner_folds: int,
+        context_features: dict,
+        stage2: dict,
+        context: TrainContext,
+        test_stage1: str = "each",
+    ):
         super().__init__(context)
+        if test_stage1 not in self.TEST_STAGE1:
+            raise ConfigError(f"model.test_stage1={test_stage1}: one of {list(self.TEST_STAGE1)}")
+        self.test_stage1 = test_stage1
         if getattr(stage1, "name", None) == "stacked":
             raise ConfigError("model.stage1: stage 1 must be a per-face model, not another stack")
         self.stage1 = stage1
@@ -105,13 +121,16 @@ class StackedFitter(Fitter):
     def _inputs(X: np.ndarray, context: np.ndarray) -> np.ndarray:
         return np.concatenate([X.reshape(len(X), -1), context], axis=1)
 
-    def stage1_proba(self, mesh, X: np.ndarray) -> np.ndarray:
-        """Stage 1's probabilities on a mesh that none of its inner models trained on: their mean."""
-        return np.mean([f.predict_mesh(mesh, X) for f in self.inner_], axis=0)
+    def stage1_proba(self, mesh, X: np.ndarray) -> list[np.ndarray]:
+        """Stage 1's labellings of a mesh that none of its inner models trained on: one per inner model
+        (`test_stage1=each`), or their mean alone (`mean`)."""
+        each = [f.predict_mesh(mesh, X) for f in self.inner_]
+        return each if self.test_stage1 == "each" else [np.mean(each, axis=0)]
 
     def predict_mesh(self, mesh, X: np.ndarray) -> np.ndarray:
-        context = MeshContext(mesh.vertices, mesh.faces, self.features).features(self.stage1_proba(mesh, X))
-        return self.trees_.predict_proba(self._inputs(X, context))
+        surface = MeshContext(mesh.vertices, mesh.faces, self.features)  # one setup for every labelling
+        stage2 = [self.trees_.predict_proba(self._inputs(X, surface.features(P))) for P in self.stage1_proba(mesh, X)]
+        return np.mean(stage2, axis=0)
 
     def predict_proba(self, X: np.ndarray) -> np.ndarray:
         raise TypeError("model=stacked reads the surface around each face: predict whole meshes (predict_mesh)")
