@@ -50,14 +50,16 @@ def test_stage_one_never_predicts_a_mesh_it_trained_on_and_never_sees_the_test_m
         assert set(f.held_out_) <= set(trained_on)  # its early-stopping meshes are among its training meshes
 
 
-def test_no_inner_model_labels_a_mesh_it_trained_on(source, monkeypatch):  # noqa: F811
-    """Spy on every inner stage-1 model: the meshes its fit got, and each mesh it labels (during the fit, its
-    held-out group; then the test mesh, once per inner model under test_stage1=each). None is one it saw."""
-    trained, labelled = {}, []
+def test_no_inner_model_labels_a_mesh_it_saw_and_each_fits_exactly_its_meshes_rows(source, monkeypatch):  # noqa: F811
+    """Spy on every inner stage-1 model: the rows its fit got, and each mesh it labels (during the fit, its
+    held-out group; then the test mesh, once per inner model under test_stage1=each). None is one it saw, and
+    each fit gets exactly the outer training rows of its meshes."""
+    trained, seen, labelled = {}, [], []
     real_fit, real_predict = GbdtFitter.fit, GbdtFitter.predict_mesh
 
     def spy_fit(self, train):
         trained[id(self)] = set(train.mesh_ids)
+        seen.append((train.mesh_ids, len(train.y), set(np.unique(train.mesh_index).tolist())))
         return real_fit(self, train)
 
     def spy_predict(self, mesh, X):
@@ -66,10 +68,13 @@ def test_no_inner_model_labels_a_mesh_it_trained_on(source, monkeypatch):  # noq
 
     monkeypatch.setattr(GbdtFitter, "fit", spy_fit)
     monkeypatch.setattr(GbdtFitter, "predict_mesh", spy_predict)
-    fit(source)
+    preds, fitter = fit(source)
     assert len(trained) == 2 and all(mesh not in trained[model] for model, mesh in labelled)
     assert sorted(mesh for _, mesh in labelled) == sorted([*TRAIN, "0", "0"])
     assert {model for model, mesh in labelled if mesh == "0"} == set(trained)  # each inner model, once
+    for (ids, _, index), (trained_on, _) in zip(seen, fitter.inner_meshes_):
+        assert ids == trained_on and index == set(range(len(ids)))
+    assert sum(n for _, n, _ in seen) == preds.counts["train_samples"]  # two halves: every row once
 
 
 def test_a_test_mesh_reaches_stage_two_through_each_inner_labelling(fitted, source):  # noqa: F811
@@ -91,23 +96,6 @@ def test_a_test_mesh_reaches_stage_two_through_each_inner_labelling(fitted, sour
     once = stage2(np.mean(each, axis=0))
     np.testing.assert_allclose(as_mean.predict_mesh(mesh, X), once, rtol=1e-6)
     assert np.abs(once - by_hand).max() > 1e-4  # the two readings differ (a little, on this easy figure)
-
-
-def test_the_rows_of_an_inner_fit_are_those_of_its_meshes(source, monkeypatch):  # noqa: F811
-    """Stage 1's inner fits get exactly the outer training rows of their meshes (spy on GbdtFitter.fit)."""
-    seen = []
-    real = GbdtFitter.fit
-
-    def spy(self, train):
-        seen.append((train.mesh_ids, len(train.y), set(np.unique(train.mesh_index).tolist())))
-        return real(self, train)
-
-    monkeypatch.setattr(GbdtFitter, "fit", spy)
-    preds, fitter = fit(source)
-    assert len(seen) == 2
-    for (ids, _, index), (trained_on, _) in zip(seen, fitter.inner_meshes_):
-        assert ids == trained_on and index == set(range(len(ids)))
-    assert sum(n for _, n, _ in seen) == preds.counts["train_samples"]  # two halves: every row once
 
 
 def test_same_seed_same_probabilities(fitted, source):  # noqa: F811
