@@ -93,6 +93,7 @@ class FoldJob:
         dataset = build_dataset(run.dataset)
         method = build_method(run)
         category, fold = resolve_fold(run, dataset, method.split)
+        method.fitter.check_fold(len(fold.train))
         config, chash = fold_identity(run, category, fold, dataset.data_hash)
         key = RunKey(
             dataset=dataset.name,

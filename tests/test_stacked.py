@@ -141,6 +141,16 @@ def test_bad_settings_are_refused_when_the_method_is_built(override, message):
         build_fitter(cfg.model, TrainContext.from_config(cfg.budget, cfg.trainer, 0))
 
 
+def test_more_inner_folds_than_training_meshes_is_refused_when_the_job_is_resolved(paths):  # noqa: F811
+    from meshseg.job import FoldJob
+
+    # 5 figures, 5-fold: 4 training meshes; refused before any feature is computed or any run is created
+    cfg = compose_run(*SMALL, "model=stacked", "model.inner_folds=5", "branches=1", "fold=0", *paths)
+    with pytest.raises(ConfigError, match=r"model.inner_folds=5: needs 2 <= inner_folds <= .* \(4\)"):
+        FoldJob.from_config(cfg)
+    FoldJob.from_config(compose_run(*SMALL, "model=stacked", "model.inner_folds=4", "branches=1", "fold=0", *paths))
+
+
 def test_a_stacked_run_is_logged_and_its_model_predicts_a_mesh(paths, tmp_path):  # noqa: F811
     from meshseg.predict import load_run_model
     from meshseg.run import run

@@ -51,6 +51,10 @@ class Fitter:
         self.parts_: dict[str, object] = {}
         self.epochs_ = 0
 
+    def check_fold(self, n_train_meshes: int) -> None:
+        """Refuse a setting the fold's training meshes cannot satisfy (a ConfigError), before any feature is
+        computed; most fitters take any number."""
+
     def fit(self, train: TrainSet) -> Fitter:
         raise NotImplementedError
 

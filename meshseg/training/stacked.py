@@ -82,6 +82,9 @@ class StackedFitter(Fitter):
         self.stage2 = dict(stage2)
         GbdtSettings.of(self.stage2)
 
+    def check_fold(self, n_train_meshes: int) -> None:
+        inner_groups(n_train_meshes, self.inner_folds, seed=0)  # its ConfigError names the fold's meshes
+
     def fit(self, train: TrainSet) -> StackedFitter:
         if train.source is None or train.faces is None:
             raise ValueError("model=stacked needs the training set's source and face indices (build_train gives them)")
