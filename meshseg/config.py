@@ -3,6 +3,8 @@ publishing and `meshseg.results` rebuild the config `meshseg.run` gave a run."""
 
 from __future__ import annotations
 
+import copy
+import functools
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -28,8 +30,16 @@ def hydra_scope() -> Iterator[None]:
 
 
 def run_config(overrides) -> DictConfig:
-    """The config `meshseg.run` composes for `overrides` (unresolved). Overrides that do not compose are one
-    ConfigError: Hydra's message on one line, without its config search path."""
+    """The config `meshseg.run` composes for `overrides` (unresolved), a copy of its own. Overrides that do not
+    compose are one ConfigError: Hydra's message on one line, without its config search path.
+
+    Composed once a process for each overrides and config search path: Hydra takes about half a second a
+    config, and a report asks for each column's three times (what to import, which runs, the cells)."""
+    return copy.deepcopy(_composed(tuple(overrides), _sources()))
+
+
+@functools.lru_cache(maxsize=256)
+def _composed(overrides: tuple[str, ...], sources: tuple) -> DictConfig:
     from hydra import compose
     from hydra.errors import HydraException
 
@@ -38,6 +48,17 @@ def run_config(overrides) -> DictConfig:
             return typed_like_defaults(compose("run", overrides=list(overrides)), overrides)
     except HydraException as e:
         raise ConfigError(" ".join(str(e).split("\nConfig search path")[0].split())) from None
+
+
+def _sources() -> tuple:
+    """Where compose looks for configs now: the running Hydra app's search path (a method in a folder of its own,
+    docs/adding-a-method.md), or () for conf/ alone (hydra_scope)."""
+    from hydra.core.global_hydra import GlobalHydra
+
+    hydra = GlobalHydra.instance()
+    if not hydra.is_initialized():
+        return ()
+    return tuple((s.provider, s.path) for s in hydra.config_loader().get_sources())
 
 
 def typed_like_defaults(cfg: DictConfig, overrides: Iterable[str]) -> DictConfig:

@@ -517,7 +517,7 @@ def _import_records(tracker: Tracker, root: Path, hashes) -> ImportReport:
     shared = same_hash(records)
     if hashes is not None:  # a record whose hash is no string is kept: refused below, by name
         records = [(p, r) for p, r in records if not isinstance(r["config_hash"], str) or r["config_hash"] in hashes]
-    have = {r.data.tags.get("config_hash") for r in tracker.runs("attributes.status = 'FINISHED'")}
+    have = _finished_by_hash(tracker)  # one search, not one a record: a report's import finds most already there
     for path, record in records:
         why = shared.get(path) or check_record(record)
         if why is not None:
@@ -526,7 +526,7 @@ def _import_records(tracker: Tracker, root: Path, hashes) -> ImportReport:
         chash = record["config_hash"]
         if chash in have:
             report.present.append(path)
-            if record.get("labels") and _add_labels(tracker, chash, record):
+            if record.get("labels") and _add_labels(tracker, have[chash], record):
                 report.labelled.append(path)
             continue
         now = current_hash(record)
@@ -549,7 +549,7 @@ def _import_records(tracker: Tracker, root: Path, hashes) -> ImportReport:
                     tracker.client.set_terminated(run_id, "KILLED")
                     tracker.client.delete_run(run_id)
             raise
-        have.add(chash)
+        have[chash] = None  # made with the record's labels, if it has them
         report.imported.append(path)
     report.refused.sort()
     return report
@@ -567,10 +567,20 @@ def _label_arrays(record: dict) -> dict | None:
     return arrays
 
 
-def _add_labels(tracker: Tracker, chash: str, record: dict) -> bool:
-    """A record that gained labels since its run was imported (e.g. by `verify attach=true`) gives them to that
-    run, which has no per-face predictions yet; a run with its own predictions keeps them. True if added."""
-    run = tracker.finished(chash)
+def _finished_by_hash(tracker: Tracker) -> dict:
+    """The store's FINISHED fold runs by config hash, the latest started of each (as `Tracker.finished` finds)."""
+    have: dict = {}
+    for r in tracker.runs("attributes.status = 'FINISHED'"):
+        h = r.data.tags.get("config_hash")
+        if h and (h not in have or r.info.start_time > have[h].info.start_time):
+            have[h] = r
+    return have
+
+
+def _add_labels(tracker: Tracker, run, record: dict) -> bool:
+    """A record that gained labels since its run (the store's FINISHED run of its hash; None: one just made from
+    the record) was imported (e.g. by `verify attach=true`) gives them to that run, which has no per-face
+    predictions yet; a run with its own predictions keeps them. True if added."""
     if run is None or FoldRecord.PREDICTIONS in {a.path for a in tracker.client.list_artifacts(run.info.run_id)}:
         return False
     tracker.log_predictions(run.info.run_id, _label_arrays(record))

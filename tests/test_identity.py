@@ -111,3 +111,22 @@ def test_a_number_has_one_identity_however_the_command_line_types_it():
     assert composed("refine.lam=2", "refine.lam=2.5")[0]["refine"]["lam"] == 2.5
     assert composed("budget.epochs=15.0", "budget.epochs=7")[0]["budget"]["epochs"] == 7
     assert "lam" not in composed("refine.lam=2", "~refine.lam")[0]["refine"]
+
+
+def test_a_config_is_composed_once_a_process_and_each_caller_gets_its_own_copy(monkeypatch):
+    """run_config composes each overrides once (a report asks for a column's config three times); a caller that
+    changes its copy changes no later caller's config, and other overrides are composed for themselves."""
+    import hydra
+
+    from meshseg.config import _composed, run_config
+
+    calls = []
+    compose = hydra.compose
+    monkeypatch.setattr(hydra, "compose", lambda *a, **k: calls.append(k["overrides"]) or compose(*a, **k))
+    _composed.cache_clear()
+    first = run_config(["dataset=psb", "model=cnn2d"])
+    first.model.name = "changed by a caller"
+    again = run_config(["dataset=psb", "model=cnn2d"])
+    assert again.model.name == "cnn2d" and again is not first
+    assert calls == [["dataset=psb", "model=cnn2d"]]
+    assert run_config(["dataset=psb", "model=gbdt"]).model.name == "gbdt" and len(calls) == 2

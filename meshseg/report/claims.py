@@ -491,7 +491,7 @@ def collect_tables(claims: ClaimsFile, cfg) -> dict[str, Table]:
         if name in judged:  # its verdict reads every run column's average
             keys = keys | {c.key for c in manifest.columns if c.overrides is not None}
         manifests[name] = manifest.only_columns([c.key for c in manifest.columns if c.key in keys])
-        import_results(manifests[name], cfg)
+    import_results(list(manifests.values()), cfg, overrides=overrides)  # the runs the tables below read
     with one_search_per_store():  # every import is done: the stores no longer change under the tables
         return {
             name: collect(manifest, overrides, metric=s.metric, paired=[], boot=bootstrap(s))  # claims pair themselves

@@ -22,22 +22,27 @@ from meshseg.report.write import markdown, write_report
 log = logging.getLogger("meshseg.report")
 
 
-def import_results(manifest: Manifest, cfg: DictConfig, sets=None) -> None:
-    """The shipped records under `report.results` (`results/<dataset>/...`) of the fold runs the manifest's
-    table wants (of its `sets`; None: all), imported into the runs' store (idempotent: records already there
-    are skipped), so that a fresh clone reports from `results/` with no training. Only those: a table of one
-    study imports its few hundred records, not every record of the dataset."""
+def import_results(manifests: Manifest | list[Manifest], cfg: DictConfig, sets=None, overrides=None) -> None:
+    """The shipped records under `report.results` (`results/<dataset>/...`) of the fold runs the manifests'
+    tables want (of their `sets`; None: all; with the run `overrides`, None: the app config's), imported into
+    the runs' store (idempotent: records already there are skipped), so that a fresh clone reports from
+    `results/` with no training. Only those: a table of one study imports its few hundred records, not every
+    record of the dataset. Several tables' records go in one import a dataset: one search of the store and one
+    read of results/ however many tables (the claims report's)."""
     from meshseg.results import import_records
     from meshseg.tracking import Tracker
 
+    manifests = [manifests] if isinstance(manifests, Manifest) else list(manifests)
+    overrides = run_overrides(cfg) if overrides is None else list(overrides)
     root = cfg.report.get("results")
     if not root or not Path(root).is_dir():
         return
     try:  # every cell's run config, before a store is opened: one that does not compose, or that no run could
         configs = [  # start with (branches=7), opens none and imports nothing
-            checked_run_config([*manifest.cell_overrides(g, c), *run_overrides(cfg)])
-            for g in manifest.groups
-            for c in manifest.columns
+            checked_run_config([*m.cell_overrides(g, c), *overrides])
+            for m in manifests
+            for g in m.groups
+            for c in m.columns
             if c.predictions is None
         ]
     except ConfigError:
@@ -45,7 +50,7 @@ def import_results(manifest: Manifest, cfg: DictConfig, sets=None) -> None:
     if not configs:
         return
     datasets = {c.dataset._target_.rsplit(".", 1)[1].lower() for c in configs}  # PSB -> psb
-    hashes = fold_hashes(manifest, run_overrides(cfg), sets)
+    hashes = set().union(*(fold_hashes(m, overrides, sets) for m in manifests))
     t = configs[0].tracking
     tracker = Tracker(t.uri, t.experiment, t.artifact_dir)
     for name in sorted(datasets):
