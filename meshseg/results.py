@@ -460,8 +460,10 @@ PER_FOLD = ("category", "fold")
 
 
 @functools.lru_cache(maxsize=64)
-def _study_config(overrides: tuple[str, ...]):
-    return run_config(overrides)
+def _study_config(overrides: tuple[str, ...]) -> dict:
+    # resolved once for all the study's records (fold_identity copies the top level it changes; resolving took
+    # a quarter of a record's import)
+    return OmegaConf.to_container(run_config(overrides), resolve=True)
 
 
 def current_hash(record: dict) -> str | None:
