@@ -519,7 +519,7 @@ def _import_records(tracker: Tracker, root: Path, hashes) -> ImportReport:
     shared = same_hash(records)
     if hashes is not None:  # a record whose hash is no string is kept: refused below, by name
         records = [(p, r) for p, r in records if not isinstance(r["config_hash"], str) or r["config_hash"] in hashes]
-    have = _finished_by_hash(tracker)  # one search, not one a record: a report's import finds most already there
+    have = tracker.finished_by_hash()  # one search, not one a record: a report's import finds most already there
     for path, record in records:
         why = shared.get(path) or check_record(record)
         if why is not None:
@@ -569,20 +569,10 @@ def _label_arrays(record: dict) -> dict | None:
     return arrays
 
 
-def _finished_by_hash(tracker: Tracker) -> dict:
-    """The store's FINISHED fold runs by config hash, the latest started of each (as `Tracker.finished` finds)."""
-    have: dict = {}
-    for r in tracker.runs("attributes.status = 'FINISHED'"):
-        h = r.data.tags.get("config_hash")
-        if h and (h not in have or r.info.start_time > have[h].info.start_time):
-            have[h] = r
-    return have
-
-
 def _add_labels(tracker: Tracker, run, record: dict) -> bool:
-    """A record that gained labels since its run (the store's FINISHED run of its hash; None: one just made from
-    the record) was imported (e.g. by `verify attach=true`) gives them to that run, which has no per-face
-    predictions yet; a run with its own predictions keeps them. True if added."""
+    """A record that gained labels since its run was imported (e.g. by `verify attach=true`) gives them to that
+    run (the store's FINISHED run of its hash; None: one this import made), which has no per-face predictions
+    yet; a run with its own predictions keeps them. True if added."""
     if run is None or FoldRecord.PREDICTIONS in {a.path for a in tracker.client.list_artifacts(run.info.run_id)}:
         return False
     tracker.log_predictions(run.info.run_id, _label_arrays(record))

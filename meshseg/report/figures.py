@@ -330,7 +330,7 @@ def _table(spec: FigureSpec, figures: FiguresFile, runs: list[str], overrides, c
             f"({', '.join(sorted(names))})"
         )
     manifest = manifest.only_columns(runs)
-    import_results(manifest, cfg, spec.sets)
+    import_results([manifest], cfg, spec.sets)
     return collect(manifest, list(overrides), sets=list(spec.sets), paired=[], boot=bootstrap(cfg.report))
 
 

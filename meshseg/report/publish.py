@@ -22,7 +22,7 @@ from meshseg.report.write import markdown, write_report
 log = logging.getLogger("meshseg.report")
 
 
-def import_results(manifests: Manifest | list[Manifest], cfg: DictConfig, sets=None, overrides=None) -> None:
+def import_results(manifests: list[Manifest], cfg: DictConfig, sets=None, overrides=None) -> None:
     """The shipped records under `report.results` (`results/<dataset>/...`) of the fold runs the manifests'
     tables want (of their `sets`; None: all; with the run `overrides`, None: the app config's), imported into
     the runs' store (idempotent: records already there are skipped), so that a fresh clone reports from
@@ -32,7 +32,6 @@ def import_results(manifests: Manifest | list[Manifest], cfg: DictConfig, sets=N
     from meshseg.results import import_records
     from meshseg.tracking import Tracker
 
-    manifests = [manifests] if isinstance(manifests, Manifest) else list(manifests)
     overrides = run_overrides(cfg) if overrides is None else list(overrides)
     root = cfg.report.get("results")
     if not root or not Path(root).is_dir():
@@ -66,7 +65,7 @@ def build(manifest: Manifest, cfg: DictConfig) -> Table:
     """The manifest's table from the runs, with the app config's run overrides and `report.*` settings."""
     s = cfg.report
     manifest, sets, paired = requested(manifest, s)
-    import_results(manifest, cfg, sets)
+    import_results([manifest], cfg, sets)
     table = collect(manifest, run_overrides(cfg), metric=s.metric, sets=sets, paired=paired, boot=bootstrap(s))
     # the settings that decide which runs a table lacks go into its `meshseg.reproduce` command
     settings = ()

@@ -80,6 +80,15 @@ class Tracker:
         runs = self.runs(f"tags.config_hash = '{config_hash}' and attributes.status = 'FINISHED'")
         return runs[0] if runs else None
 
+    def finished_by_hash(self) -> dict:
+        """Every config hash's FINISHED run, as `finished` finds it (the latest started), in one search."""
+        found: dict = {}
+        for r in self.runs("attributes.status = 'FINISHED'"):
+            h = r.data.tags.get("config_hash")
+            if h and (h not in found or r.info.start_time > found[h].info.start_time):
+                found[h] = r
+        return found
+
     def claim(
         self, name: str, tags: dict, lease: Lease | None = None, start_time: int | None = None
     ) -> tuple[str | None, object | None]:
