@@ -634,7 +634,8 @@ def test_an_empty_table_2_says_what_is_missing_and_the_command_runs_exactly_that
     picked = reproduce(path, ["report.columns=[ToG15,3B]", "report.dry_run=true", "report.results=null"])
     order = [(c.column, c.row) for c in picked.launched]
     assert len(order) == 64 and order[0] == ("ToG15", "Airplane") and order[15] == ("ToG15", "Vase")
-    assert order[16] == order[17] == order[18] == ("3B", "Airplane") and order[-1] == ("3B", "Vase")  # 3B: a sweep per seed
+    # 3B: a sweep per seed
+    assert order[16] == order[17] == order[18] == ("3B", "Airplane") and order[-1] == ("3B", "Vase")
     assert [c.sweep()[-3] for c in picked.launched[16:19]] == ["seed=0", "seed=1", "seed=2"]
     assert [c.key for c in picked.table.columns] == ["ToG15", "3B"]
     assert picked.table.rows[-1].cells[0].published == 92.04  # ToG15's published average moved with it
