@@ -615,28 +615,30 @@ def test_an_empty_table_2_says_what_is_missing_and_the_command_runs_exactly_that
     report(path, [f"report.out_dir={tmp_path}", "report.log=false", "report.n_boot=10", "report.results=null"])
     md = (tmp_path / "table2_psb_5fold/table.md").read_text()
     teddy = next(x for x in md.splitlines() if x.startswith("| Teddy |"))
-    # every column: no fold run, then the published number; 1B and 3B are at three training seeds (5 folds each)
-    assert teddy.count("— (0/5) /") == 5 and teddy.count("— (0/15 runs) /") == 2
+    # every column: no fold run, then the published number; 1B, 3B and ToG15 are at three training seeds (5 folds each)
+    assert teddy.count("— (0/5) /") == 4 and teddy.count("— (0/15 runs) /") == 3
     (line,) = [x for x in md.splitlines() if "cells complete" in x]
     command = "python -m meshseg.reproduce experiments/table2_psb_5fold.yaml report.results=null"
     assert (
         line
-        == f"0 of 112 cells complete; 880 fold runs missing. Next: `{command}` — no fold timed yet to say how long."
+        == f"0 of 112 cells complete; 1040 fold runs missing. Next: `{command}` — no fold timed yet to say how long."
     )
     dry = cli("meshseg.reproduce", *shlex.split(command)[3:], "report.dry_run=true", env=env)
     assert dry.returncode == 0, dry.stderr[-2000:]
-    # a sweep per (column, set), and per seed for 1B and 3B: 5 x 16 + 2 x 16 x 3
-    assert "176 cell(s) lack 880 fold run(s)" in dry.stderr and dry.stderr.count("would run: ") == 176
+    # a sweep per (column, set), and per seed for 1B, 3B and ToG15: 4 x 16 + 3 x 16 x 3
+    assert "208 cell(s) lack 1040 fold run(s)" in dry.stderr and dry.stderr.count("would run: ") == 208
     assert (
-        "[176/176] would run: python -m meshseg.run -m" in dry.stderr and "category=Vase fold=0,1,2,3,4" in dry.stderr
+        "[208/208] would run: python -m meshseg.run -m" in dry.stderr and "category=Vase fold=0,1,2,3,4" in dry.stderr
     )
     # report.columns: those columns only, run one after the other in the order given
     picked = reproduce(path, ["report.columns=[ToG15,3B]", "report.dry_run=true", "report.results=null"])
     order = [(c.column, c.row) for c in picked.launched]
-    assert len(order) == 64 and order[0] == ("ToG15", "Airplane") and order[15] == ("ToG15", "Vase")
-    # 3B: a sweep per seed
-    assert order[16] == order[17] == order[18] == ("3B", "Airplane") and order[-1] == ("3B", "Vase")
-    assert [c.sweep()[-3] for c in picked.launched[16:19]] == ["seed=0", "seed=1", "seed=2"]
+    assert len(order) == 96 and order[0] == order[1] == order[2] == ("ToG15", "Airplane")
+    # a sweep per seed, for ToG15 and 3B alike
+    assert order[47] == ("ToG15", "Vase") and order[48] == order[49] == order[50] == ("3B", "Airplane")
+    assert order[-1] == ("3B", "Vase")
+    for first in (0, 48):
+        assert [c.sweep()[-3] for c in picked.launched[first : first + 3]] == ["seed=0", "seed=1", "seed=2"]
     assert [c.key for c in picked.table.columns] == ["ToG15", "3B"]
     assert picked.table.rows[-1].cells[0].published == 92.04  # ToG15's published average moved with it
     assert "report.columns=[ToG15,3B]" in progress(picked.table).command
