@@ -38,7 +38,6 @@ def run(cfg: DictConfig) -> FoldOutcome:
     whose config already has a FINISHED run (or a live one) is skipped; its run ends FINISHED, FAILED or KILLED."""
     from meshseg.metrics import area_accuracy, mesh_scores
     from meshseg.pyfunc import log_fold_model
-    from meshseg.refine.search import fit_refinement
     from meshseg.tracking import FoldRecord, Lease, Tracker, system_tags
     from meshseg.training.data import FeatureSource
     from meshseg.training.fit import fit_predict
@@ -95,7 +94,7 @@ def run(cfg: DictConfig) -> FoldOutcome:
             timings = Timings(preds.timings)
             # refine: its settings as configured, or chosen on held-out training meshes (refine.search); its
             # per-mesh inputs (e.g. AGD) come from the feature cache
-            fitted = fit_refinement(job.refinement, preds, source, area_accuracy, timings)
+            fitted = job.refinement.fitted(preds, source, area_accuracy, timings)
             refine = fitted.refinement
             log.info("refining %d test meshes (%s)", len(preds.meshes), key.refine)
             with timings("refine"):

@@ -62,6 +62,13 @@ class Refinement:
     def labels(self, mesh: Mesh, P: np.ndarray, features: np.ndarray | None) -> np.ndarray:
         raise NotImplementedError
 
+    def fitted(self, preds, source, score, timings):
+        """The refinement a fold applies, fitted like its model: as configured, or with `search` its settings
+        chosen on the training meshes the fitter held out (meshseg.refine.search.fit_refinement)."""
+        from meshseg.refine.search import fit_refinement
+
+        return fit_refinement(self, preds, source, score, timings)
+
 
 class Argmax(Refinement):
     """No refinement: each face's most probable label."""
