@@ -12,17 +12,14 @@ own group parameters), and is called as `refinement(mesh, probabilities, feature
 
 from __future__ import annotations
 
-import itertools
-import math
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, fields, is_dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from omegaconf import OmegaConf
 
 from meshseg.data.mesh import Mesh
 from meshseg.errors import ConfigError
-from meshseg.refine import graphcut
+from meshseg.refine import graphcut, search
 
 
 def _where(mesh: Mesh) -> str:
@@ -65,9 +62,7 @@ class Refinement:
     def fitted(self, preds, source, score, timings):
         """The refinement a fold applies, fitted like its model: as configured, or with `search` its settings
         chosen on the training meshes the fitter held out (meshseg.refine.search.fit_refinement)."""
-        from meshseg.refine.search import fit_refinement
-
-        return fit_refinement(self, preds, source, score, timings)
+        return search.fit_refinement(self, preds, source, score, timings)
 
 
 class Argmax(Refinement):
@@ -166,60 +161,6 @@ class GraphCutAGD(GraphCut):
         return graphcut.agd_weights(theta, f, pairs, self.omega)
 
 
-# The grid `refine.search` ranges over, checked when the refinement is built (meshseg/refine/search.py chooses
-# among its points per fold).
-def numeric_settings(refinement: Refinement) -> list[str]:
-    """The settings of `refinement` a grid may range over: its numbers (a chosen value is logged as a metric)."""
-    if not is_dataclass(refinement):
-        return []
-    defaults = {f.name: f.default for f in fields(refinement)}
-    return sorted(k for k, v in defaults.items() if isinstance(v, int | float) and not isinstance(v, bool))
-
-
-#: the most points a refine.search grid may have: each costs a graph cut of every held-out mesh (seconds each)
-MAX_GRID_POINTS = 100
-
-
-def grid_points(refinement: Refinement, grid: dict) -> list[dict]:
-    """Every combination of the grid's values, as settings of `refinement`, in grid order (settings sorted by
-    name, values as listed); a grid that is not settings with non-empty lists of numbers, or a key that is
-    not a numeric setting, is refused."""
-    if not isinstance(grid, Mapping) or not grid:
-        raise ConfigError(
-            f"refine.search={grid} is not allowed: give settings with lists of values, e.g. {{lam: [1, 2]}}"
-        )
-    allowed = numeric_settings(refinement)
-    for key, values in grid.items():
-        if key not in allowed:
-            raise ConfigError(
-                f"refine.search.{key} is not allowed with refine={refinement.name}: it takes "
-                f"{', '.join(allowed) or 'no settings'}"
-            )
-        numbers = isinstance(values, Sequence) and not isinstance(values, str) and len(values) > 0
-        if not numbers or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in values):
-            raise ConfigError(f"refine.search.{key}={values} is not allowed: it must be a non-empty list of numbers")
-    keys = sorted(grid)  # the config hash sorts the keys too: one hash, one order, one tie-break
-    size = math.prod(len(grid[k]) for k in keys)
-    if size > MAX_GRID_POINTS:  # counted before any point is built: 10^6 points were 1.3 GB and days of cuts
-        shape = " x ".join(f"{len(grid[k])} {k}" for k in keys)
-        raise ConfigError(
-            f"refine.search has {size:,} points ({shape}): at most {MAX_GRID_POINTS} are allowed, "
-            "each one a graph cut of every held-out mesh of every fold"
-        )
-    return [dict(zip(keys, combo)) for combo in itertools.product(*(list(grid[k]) for k in keys))]
-
-
-def candidates(refinement: Refinement, grid: dict) -> list[tuple[dict, Refinement]]:
-    """Each grid point with the refinement at it (checked as if configured so), with no search of its own."""
-    out = []
-    for point in grid_points(refinement, grid):
-        try:
-            out.append((point, replace(refinement, search=None, **point)))
-        except ConfigError as e:  # the grid's value, not the configured one, is what is wrong
-            raise ConfigError(f"refine.search {point}: {e}") from None
-    return out
-
-
 def build_refinement(cfg) -> Refinement:
     """The refinement a `conf/refine/*.yaml` node names, its settings checked."""
     from meshseg.instantiate import build
@@ -230,7 +171,7 @@ def build_refinement(cfg) -> Refinement:
     if refinement.search is not None:  # every grid point checked now, before any fold trains
         grid = refinement.search
         refinement.search = OmegaConf.to_container(grid) if OmegaConf.is_config(grid) else grid
-        candidates(refinement, refinement.search)
+        search.candidates(refinement, refinement.search)
     return refinement
 
 

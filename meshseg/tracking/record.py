@@ -90,7 +90,7 @@ class FoldRecord:
     #: the per-mesh columns a report may average
     MESH_METRICS = ("acc", "acc_raw")
     #: artifact (runs with refine.search): the held-out meshes and every grid point's scores (JSON); the name
-    #: meshseg.refine.search.SEARCH_RECORD gives it (not imported here: that module imports torch)
+    #: meshseg.refine.search.SEARCH_RECORD gives it (a test keeps the two equal; the record needs no refine package)
     REFINE_SEARCH = "refine_search.json"
     #: artifact: per-face arrays, keys `<prefix><mesh id>` with these dtypes (and `classes`, the class count, where
     #: no `probs_` array gives it: a run imported from a record's labels)
