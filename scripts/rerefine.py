@@ -66,7 +66,7 @@ def main(argv: list[str]) -> None:
     from meshseg.data.splits import build_split
     from meshseg.job import FoldJob
     from meshseg.metrics import area_weighted_accuracy
-    from meshseg.refine.refinement import numeric_settings
+    from meshseg.refine.search import numeric_settings
     from meshseg.report.runs import finished_by_hash
     from meshseg.tracking import FoldRecord, check_store_exists, store_uri
     from meshseg.training.data import mesh_groups
