@@ -8,6 +8,7 @@ import json
 import logging
 import math
 import os
+import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -121,6 +122,12 @@ class SweepSummary:
         return {**counts, **{f"test/acc/{c}": sum(a) / len(a) for c, a in s.accuracies.items()}}
 
 
+def param_name(key: str) -> str:
+    """An override's key as the name of a parent's param: without Hydra's +/~ prefix, and each character MLflow
+    refuses in a param's name as ':' (a package override, `model@model.stage1=cnn1d`, is `model:model.stage1`)."""
+    return re.sub(r"[^\w./ :-]", ":", key.lstrip("+~"))
+
+
 @dataclass
 class SweepParent:
     """A sweep's parent run (meshseg.tracking.sweeps), made or found by the process that expands the sweep; its id
@@ -146,7 +153,7 @@ class SweepParent:
         key, settings = sweep_key(overrides, t.hash_exclude)
         command = " ".join(["python -m meshseg.run -m", *overrides])
         tags = {**system_tags("meshseg.run", command, git_sha()), "sweep_overrides": json.dumps(settings)}
-        params = {k.lstrip("+~"): v for k, _, v in (o.partition("=") for o in settings)}
+        params = {param_name(k): v for k, _, v in (o.partition("=") for o in settings)}
         name = f"sweep · {' '.join(settings) or 'every category and fold'}"
         run_id = open_parent(tracker, key, name[:250], tags, params)
         os.environ[SWEEP_PARENT] = run_id

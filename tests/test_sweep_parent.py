@@ -140,3 +140,19 @@ def test_a_sweeps_identity_is_its_settings_not_how_or_where_it_runs():
     assert sweep_key([*same, "paths.cache_dir=/x", "trainer.threads=1"], ("paths", "trainer.threads"))[0] == key
     assert sweep_key(["model=cnn1d", "branches=1,3", "budget=cpu"], ("paths",))[0] != key
     assert sweep_key(["model=cnn1d", "branches=1,3", "budget=smoke", "seed=1"], ())[0] != key
+
+
+def test_a_package_override_is_a_parent_param_mlflow_accepts(tmp_path, monkeypatch):
+    # `model@model.stage1=cnn1d` (Hydra's group@package) once failed the sweep: MLflow allows no '@' in a param name
+    from types import SimpleNamespace
+
+    from meshseg.sweep import SWEEP_PARENT, SweepParent
+
+    monkeypatch.delenv(SWEEP_PARENT, raising=False)  # open() sets it; the test's end takes it away again
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    tracking = SimpleNamespace(uri=uri, experiment="meshseg", artifact_dir=None, hash_exclude=["trainer"])
+    overrides = ["model=stacked", "model@model.stage1=cnn1d", "+extra=1", "trainer.threads=1", "category=Vase"]
+    parent = SweepParent.open([tracking], overrides)
+    run = MlflowClient(uri).get_run(parent.run_id)
+    assert run.data.params == {"model": "stacked", "model:model.stage1": "cnn1d", "extra": "1", "category": "Vase"}
+    assert json.loads(run.data.tags["sweep_overrides"]) == [o for o in overrides if not o.startswith("trainer")]
