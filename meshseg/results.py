@@ -13,16 +13,16 @@ run logged them, its test meshes' refined per-face labels (`labels`, LABELS_ENCO
 the store.
 
 Import recreates each record as a FINISHED run with the same tags, params, metrics, `config.yaml` and
-`per_mesh.csv`, so the report, `reproduce` (which then skips it), the UI and the notebooks see it. It is
-idempotent, also beside another import or a sweep (each run is claimed like a fold's); a record that gained
-labels since its run was imported (`verify attach=true`) gives them to that run if it has none. Each record is
-checked whole before its run is made, and a record whose config hash the
-current code would no longer give to its overrides and fold (the config changed since) is reported and
-skipped, never mixed in. A record is refused, with one line naming its file and why, when it is not whole
-(accuracies outside [0, 1], per-mesh rows that are not its fold's test meshes, a `test/acc` that is not their
-mean, a tag over MLflow's limit, ...), when its file is over MAX_RECORD_BYTES, cannot be read or is a
-symbolic link (as is a linked folder), or when another record of the import has its config hash (both);
-the other records are imported all the same. The import exits non-zero when it refused any record. SIGTERM
+`per_mesh.csv`, so the report, `reproduce` (which then skips it), the UI and the notebooks see it. It is idempotent,
+also beside another import or a sweep (each run is claimed like a fold's); a record that gained labels since its run
+was imported (`verify attach=true`) gives them to that run if it has none, and an export from a run without labels
+keeps those its record already has (the same run: the same per-mesh accuracies). Each record is checked whole before
+its run is made, and a record whose config hash the current code would no longer give to its overrides and fold (the
+config changed since) is reported and skipped, never mixed in. A record is refused, with one line naming its file
+and why, when it is not whole (accuracies outside [0, 1], per-mesh rows that are not its fold's test meshes, a
+`test/acc` that is not their mean, a tag over MLflow's limit, ...), when its file is over MAX_RECORD_BYTES, cannot
+be read or is a symbolic link (as is a linked folder), or when another record of the import has its config hash
+(both); the other records are imported all the same. The import exits non-zero when it refused any record. SIGTERM
 or Ctrl-C ends it with one `error:` line, the record under way removed again: no run is left RUNNING.
 """
 
@@ -385,11 +385,22 @@ def export(tracker: Tracker, out: Path) -> tuple[int, int]:
         except ConfigError as e:  # a run whose names would write outside `out`: never exported
             log.warning("not exported: run %s: %s", run.info.run_id, e)
             continue
-        if write_record(path, rec):
+        if write_record(path, _keep_labels(path, rec)):
             written += 1
         else:
             unchanged += 1
     return written, unchanged
+
+
+def _keep_labels(path: Path, rec: dict) -> dict:
+    """`rec`, given the labels of the record already at `path` when its run has none but is that record's run (the
+    same per-mesh accuracies): labels `verify attach=true` wrote into a record are not lost to the next export."""
+    if "labels" in rec or not path.exists():
+        return rec
+    _, old = _read_record(path)
+    if old is None or "labels" not in old or old.get("per_mesh") != rec.get("per_mesh"):
+        return rec
+    return {**rec, "labels": old["labels"]}
 
 
 def load_records(root: Path) -> list[tuple[Path, dict]]:

@@ -143,7 +143,7 @@ def tag(key, value, why):
 
 
 def labelled(r, classes: int = 5) -> dict:
-    """The record with per-face labels for its test meshes (a shipped record carries none): mesh i's labels
+    """The record with per-face labels for its test meshes (made up, whatever it carried): mesh i's labels
     count 0, 1, ... up to classes - 1 and round again."""
     r["labels"] = {
         "encoding": LABELS_ENCODING,
@@ -244,6 +244,28 @@ def test_labels_round_trip_through_import_and_export_bit_for_bit(record, tmp_pat
     assert back["labels"] == record["labels"]
     for row in record["per_mesh"]:
         assert np.array_equal(decode_labels(back["labels"]["meshes"][row["mesh"]]), np.arange(row["faces"]) % 7)
+
+
+def test_an_export_from_a_run_without_labels_keeps_the_labels_its_record_has(record, tmp_path):
+    """`verify attach=true` writes labels into a record whose run has none: the next export keeps them, unless the
+    run is not the record's (other per-mesh accuracies), whose labels would then be another run's."""
+    record.pop("labels", None)  # a record from before records carried labels
+    store = tracker(tmp_path / "store")
+    put(tmp_path / "in", record)
+    assert import_records(store, tmp_path / "in").refused == []
+    assert export(store, tmp_path / "out") == (1, 0)
+    [path] = (tmp_path / "out").rglob("*.json")
+    bare = json.loads(path.read_text())
+    assert "labels" not in bare
+    attached = labelled(json.loads(path.read_text()), classes=7)
+    path.write_text(json.dumps(attached))
+    assert export(store, tmp_path / "out") == (1, 0)  # written again, in the writer's own layout, labels kept
+    assert json.loads(path.read_text()) == attached
+    assert export(store, tmp_path / "out") == (0, 1)
+    attached["per_mesh"][0]["acc"] /= 2  # another run's record at this path: its labels are not this run's
+    path.write_text(json.dumps(attached))
+    export(store, tmp_path / "out")
+    assert json.loads(path.read_text()) == bare
 
 
 @pytest.mark.parametrize("case", IMPOSSIBLE)
