@@ -231,15 +231,21 @@ def test_the_shipped_record_itself_imports(record, tmp_path):
     assert [r.info.status for r in every_run(store)] == ["FINISHED"]
 
 
-def test_labels_round_trip_through_import_and_export_bit_for_bit(record, tmp_path):
-    """A record's per-face labels become the imported run's predictions artifact and come back out of export
-    unchanged; a record without labels still imports (the test above) and exports without them."""
-    labelled(record, classes=7)
+def imported_and_exported(record, tmp_path) -> tuple[Tracker, Path]:
+    """A new store with `record` imported, and the path of the record its export wrote."""
     store = tracker(tmp_path / "store")
     put(tmp_path / "in", record)
     assert import_records(store, tmp_path / "in").refused == []
     assert export(store, tmp_path / "out") == (1, 0)
     [path] = (tmp_path / "out").rglob("*.json")
+    return store, path
+
+
+def test_labels_round_trip_through_import_and_export_bit_for_bit(record, tmp_path):
+    """A record's per-face labels become the imported run's predictions artifact and come back out of export
+    unchanged; a record without labels still imports (the test above) and exports without them."""
+    labelled(record, classes=7)
+    _, path = imported_and_exported(record, tmp_path)
     back = json.loads(path.read_text())
     assert back["labels"] == record["labels"]
     for row in record["per_mesh"]:
@@ -250,11 +256,7 @@ def test_an_export_from_a_run_without_labels_keeps_the_labels_its_record_has(rec
     """`verify attach=true` writes labels into a record whose run has none: the next export keeps them, unless the
     run is not the record's (other per-mesh accuracies), whose labels would then be another run's."""
     record.pop("labels", None)  # a record from before records carried labels
-    store = tracker(tmp_path / "store")
-    put(tmp_path / "in", record)
-    assert import_records(store, tmp_path / "in").refused == []
-    assert export(store, tmp_path / "out") == (1, 0)
-    [path] = (tmp_path / "out").rglob("*.json")
+    store, path = imported_and_exported(record, tmp_path)
     bare = json.loads(path.read_text())
     assert "labels" not in bare
     attached = labelled(json.loads(path.read_text()), classes=7)
