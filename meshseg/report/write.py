@@ -141,8 +141,12 @@ def _boundaries_md(table: Table) -> list[str]:
     labels = {c.key: c.label for c in table.columns}
     pairs = [(p.a.key, p.b.key) for p in table.pairs]
     lines = boundaries_summary(frame, pairs)
-    old = "results/ records exported before 2026-12-02 carry none"
-    aside = f"; {unread} test meshes left out: no per-face labels here ({old})" if unread else ""
+    aside = (
+        f"; {unread} test meshes left out: no per-face labels here "
+        "(results/ records exported before 2026-12-02 carry none)"
+        if unread
+        else ""
+    )
     out = [
         "**Where the errors lie** (wrong area in % of each test mesh's area, by face rings from the nearest "
         "true part boundary, ring 0 on it; mean over meshes; a pair's row: its accuracy difference a − b in "
