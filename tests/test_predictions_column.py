@@ -112,3 +112,28 @@ def test_a_column_still_running_is_compared_on_its_finished_folds(tiny, monkeypa
     table = replace(table, meshes=meshes[meshes["column"] != "A"])  # nothing finished yet: nothing to compare
     (s, _) = compare(table, "A", "B", Bootstrap(200)).rows
     assert s.value is None and s.why == "A: incomplete, B: ok"
+
+
+@pytest.mark.parametrize("metric", ["acc", "acc_raw"])
+def test_where_a_labellings_columns_errors_lie_and_why_it_is_left_out_before_refinement(metric, tiny, monkeypatch):
+    """report.boundaries reads a labellings column under acc (wrong area 100 − its accuracy a mesh); under acc_raw
+    it has no argmax to read, and the block's aside says so rather than blaming missing per-face labels."""
+    from meshseg.report.boundaries import where_errors_lie
+    from meshseg.report.write import markdown
+
+    monkeypatch.setenv("MESHSEG_CACHE_DIR", str(tiny / "cache"))
+    m = manifest(
+        tiny, [{"key": "K", "label": "K", "predictions": {"path": str(tiny / "pred"), "format": "psb_labels"}}]
+    )
+    store = [f"paths.mlflow_dir={tiny / 'mlruns'}"]
+    table = collect(m, store, metric=metric, boot=Bootstrap(50))
+    frame, unread = where_errors_lie(table, store)
+    md = markdown(replace(table, boundaries=(frame, unread)))
+    if metric == "acc":
+        assert unread == 0 and list(frame["mesh"]) == ["1", "2"]
+        assert np.allclose(frame["err"], [20.0, 100 / 3])
+        assert "left out" not in md
+    else:
+        assert unread == 2 and frame.empty
+        assert "2 test meshes left out: 2 from labellings on disk, which have no argmax before refinement" in md
+        assert "without per-face labels" not in md

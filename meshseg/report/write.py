@@ -141,12 +141,17 @@ def _boundaries_md(table: Table) -> list[str]:
     labels = {c.key: c.label for c in table.columns}
     pairs = [(p.a.key, p.b.key) for p in table.pairs]
     lines = boundaries_summary(frame, pairs)
-    aside = (
-        f"; {unread} test meshes left out: no per-face labels here "
-        "(results/ records exported before 2026-12-02 carry none)"
-        if unread
-        else ""
-    )
+    # under acc_raw a labellings column is left out whole: a labelling on disk has no argmax before refinement
+    files = {c.key for c in table.columns if c.predictions is not None} if table.metric != "acc" else set()
+    unlabelled = unread - int(table.meshes["column"].isin(files).sum())
+    why = []
+    if unlabelled:
+        why.append(
+            f"{unlabelled} without per-face labels here (results/ records exported before 2026-12-02 carry none)"
+        )
+    if unread > unlabelled:
+        why.append(f"{unread - unlabelled} from labellings on disk, which have no argmax before refinement")
+    aside = f"; {unread} test meshes left out: {', '.join(why)}" if unread else ""
     out = [
         "**Where the errors lie** (wrong area in % of each test mesh's area, by face rings from the nearest "
         "true part boundary, ring 0 on it; mean over meshes; a pair's row: its accuracy difference a − b in "
