@@ -127,13 +127,13 @@ def test_where_a_labellings_columns_errors_lie_and_why_it_is_left_out_before_ref
     )
     store = [f"paths.mlflow_dir={tiny / 'mlruns'}"]
     table = collect(m, store, metric=metric, boot=Bootstrap(50))
-    frame, unread = where_errors_lie(table, store)
-    md = markdown(replace(table, boundaries=(frame, unread)))
+    frame, unlabelled, raw_files = where_errors_lie(table, store)
+    md = markdown(replace(table, boundaries=(frame, unlabelled, raw_files)))
     if metric == "acc":
-        assert unread == 0 and list(frame["mesh"]) == ["1", "2"]
+        assert unlabelled == raw_files == 0 and list(frame["mesh"]) == ["1", "2"]
         assert np.allclose(frame["err"], [20.0, 100 / 3])
         assert "left out" not in md
     else:
-        assert unread == 2 and frame.empty
+        assert (unlabelled, raw_files) == (0, 2) and frame.empty
         assert "2 test meshes left out: 2 from labellings on disk, which have no argmax before refinement" in md
         assert "without per-face labels" not in md

@@ -55,10 +55,11 @@ def error_by_band(pred: np.ndarray, truth: np.ndarray, areas: np.ndarray, rings:
     return out
 
 
-def where_errors_lie(table: Table, overrides=()) -> tuple[pd.DataFrame, int]:
+def where_errors_lie(table: Table, overrides=()) -> tuple[pd.DataFrame, int, int]:
     """One row per test mesh of the table (COLUMNS) whose labelling can be read: a run's per-face predictions
     (refined under report.metric=acc, the argmax under acc_raw) or a predictions column's file. Returns the
-    frame and how many of the table's test meshes had no per-face labels to read."""
+    frame, how many of the table's test meshes had no per-face labels to read, and how many were a predictions
+    column's under acc_raw (a labelling on disk has no argmax before refinement)."""
     from mlflow import MlflowClient
 
     from meshseg.config import run_config
@@ -70,11 +71,11 @@ def where_errors_lie(table: Table, overrides=()) -> tuple[pd.DataFrame, int]:
     prefix = "labels_" if table.metric == "acc" else "labels_raw_"
     m = table.manifest
     groups, columns = {g.name: g for g in m.groups}, {c.key: c for c in m.columns}
-    rows, unread, loaded, datasets = [], 0, {}, {}
+    rows, unread, raw_files, loaded, datasets = [], 0, 0, {}, {}
     for (group, key), part in table.meshes.groupby(["group", "column"], sort=False):
         column = columns[key]
         if column.predictions is not None and table.metric != "acc":
-            unread += len(part)  # a labelling on disk has no argmax before refinement
+            raw_files += len(part)
             continue
         cfg = run_config([*m.cell_overrides(groups[group], column), *overrides])
         spec = OmegaConf.to_yaml(cfg.dataset)
@@ -100,9 +101,9 @@ def where_errors_lie(table: Table, overrides=()) -> tuple[pd.DataFrame, int]:
                 )
                 bands = error_by_band(pred, mesh.labels, mesh.face_areas, rings)
                 rows.append({"group": group, "row": r.row, "column": key, "mesh": r.mesh, **bands})
-    if unread:
-        log.info("where errors lie: %d test meshes have no per-face labels to read here", unread)
-    return pd.DataFrame(rows, columns=list(COLUMNS)), unread
+    if unread or raw_files:
+        log.info("where errors lie: %d test meshes have no per-face labels to read here", unread + raw_files)
+    return pd.DataFrame(rows, columns=list(COLUMNS)), unread, raw_files
 
 
 def summary(frame: pd.DataFrame, pairs) -> pd.DataFrame:

@@ -138,9 +138,9 @@ class Table:
     settings: tuple[str, ...] = ()  # other report.* settings that decide which runs it lacks (report.results)
     #: one row per test mesh of every finished fold run of every cell (group, row, column key, mesh, acc, ...)
     meshes: pd.DataFrame = field(default_factory=no_meshes)
-    #: report.boundaries: where each test mesh's errors lie (meshseg/report/boundaries.py), and how many test
-    #: meshes had no per-face labels to read; None: not asked
-    boundaries: tuple[pd.DataFrame, int] | None = None
+    #: report.boundaries: where each test mesh's errors lie (meshseg/report/boundaries.py), how many test meshes
+    #: had no per-face labels to read, and how many were a predictions column's under acc_raw; None: not asked
+    boundaries: tuple[pd.DataFrame, int, int] | None = None
 
     @property
     def budgets(self) -> list[str]:

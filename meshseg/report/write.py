@@ -137,21 +137,18 @@ def markdown(table: Table) -> str:
 def _boundaries_md(table: Table) -> list[str]:
     """report.boundaries' block: each column's wrong area by face rings from the true part boundary, then
     each pair's difference by ring, over the meshes both have (boundaries.csv has every mesh)."""
-    frame, unread = table.boundaries
+    frame, unlabelled, raw_files = table.boundaries
     labels = {c.key: c.label for c in table.columns}
     pairs = [(p.a.key, p.b.key) for p in table.pairs]
     lines = boundaries_summary(frame, pairs)
-    # under acc_raw a labellings column is left out whole: a labelling on disk has no argmax before refinement
-    files = {c.key for c in table.columns if c.predictions is not None} if table.metric != "acc" else set()
-    unlabelled = unread - int(table.meshes["column"].isin(files).sum())
     why = []
     if unlabelled:
         why.append(
             f"{unlabelled} without per-face labels here (results/ records exported before 2026-12-02 carry none)"
         )
-    if unread > unlabelled:
-        why.append(f"{unread - unlabelled} from labellings on disk, which have no argmax before refinement")
-    aside = f"; {unread} test meshes left out: {', '.join(why)}" if unread else ""
+    if raw_files:
+        why.append(f"{raw_files} from labellings on disk, which have no argmax before refinement")
+    aside = f"; {unlabelled + raw_files} test meshes left out: {', '.join(why)}" if why else ""
     out = [
         "**Where the errors lie** (wrong area in % of each test mesh's area, by face rings from the nearest "
         "true part boundary, ring 0 on it; mean over meshes; a pair's row: its accuracy difference a − b in "
@@ -169,7 +166,7 @@ def _boundaries_md(table: Table) -> list[str]:
 
 def boundaries_csv(table: Table) -> str:
     """report.boundaries' frame: one line per (column, test mesh), its wrong area in % by ring band."""
-    frame, _ = table.boundaries
+    frame = table.boundaries[0]
     return frame.to_csv(index=False, float_format="%.4f")
 
 
