@@ -71,7 +71,7 @@ def where_errors_lie(table: Table, overrides=()) -> tuple[pd.DataFrame, int, int
     prefix = "labels_" if table.metric == "acc" else "labels_raw_"
     m = table.manifest
     groups, columns = {g.name: g for g in m.groups}, {c.key: c for c in m.columns}
-    rows, unread, raw_files, loaded, datasets = [], 0, 0, {}, {}
+    rows, unlabelled, raw_files, loaded, datasets = [], 0, 0, {}, {}
     for (group, key), part in table.meshes.groupby(["group", "column"], sort=False):
         column = columns[key]
         if column.predictions is not None and table.metric != "acc":
@@ -87,7 +87,7 @@ def where_errors_lie(table: Table, overrides=()) -> tuple[pd.DataFrame, int, int
             arrays = None if column.predictions is not None else run_predictions(client, run_id)
             for r in meshes.itertuples():
                 if column.predictions is None and (arrays is None or f"{prefix}{r.mesh}" not in arrays):
-                    unread += 1
+                    unlabelled += 1
                     continue
                 key_mesh = (spec, r.category, r.mesh)  # every column of a set scores the same meshes: load once
                 if key_mesh not in loaded:
@@ -101,9 +101,14 @@ def where_errors_lie(table: Table, overrides=()) -> tuple[pd.DataFrame, int, int
                 )
                 bands = error_by_band(pred, mesh.labels, mesh.face_areas, rings)
                 rows.append({"group": group, "row": r.row, "column": key, "mesh": r.mesh, **bands})
-    if unread or raw_files:
-        log.info("where errors lie: %d test meshes have no per-face labels to read here", unread + raw_files)
-    return pd.DataFrame(rows, columns=list(COLUMNS)), unread, raw_files
+    if unlabelled or raw_files:
+        log.info(
+            "where errors lie: %d test meshes left out (%d without per-face labels here, %d labellings under acc_raw)",
+            unlabelled + raw_files,
+            unlabelled,
+            raw_files,
+        )
+    return pd.DataFrame(rows, columns=list(COLUMNS)), unlabelled, raw_files
 
 
 def summary(frame: pd.DataFrame, pairs) -> pd.DataFrame:
